@@ -1,0 +1,1 @@
+"""Backends: turn odometry (and loop) measurements into a trajectory."""

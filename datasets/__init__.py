@@ -1,0 +1,1 @@
+"""Dataset readers (one class per module) and the format-guessing factory."""

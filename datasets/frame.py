@@ -1,0 +1,123 @@
+"""The common frame interface every dataset reader returns, and the base class of readers.
+
+Frames and units
+----------------
+- ``points``: (N,3) float64, metres, in the *sensor frame* of this scan.
+- ``timestamp``: seconds (float64), the scan's reference time.
+- ``point_times``: optional (N,) float64, seconds *relative to* ``timestamp``
+  (so a 10 Hz spinning sweep spans about 0..0.1 s, or -0.1..0 when the
+  reference is the sweep end).
+- ``gt_pose``: optional ``T_world_sensor`` (4x4 float64), see ``flowslam.geometry``.
+- ``gt_flow``: optional (N,3) float64 scene flow in the Argoverse 2 convention:
+  ``points + gt_flow`` is the same physical point at the next scan, expressed in
+  the *next* sensor frame (static: ``T_{t+1,t} p - p``).
+- ``gt_dynamic``: optional (N,) bool, the point moves in the world.
+- ``gt_class``: optional (N,) int semantic class ids (dataset-specific).
+- ``gt_instance``: optional (N,) int instance/track ids (-1 = none).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from flowslam.errors import InputError
+
+log = logging.getLogger(__name__)
+
+MIN_VALID_POINTS = 100
+"""A scan with fewer finite points than this is rejected as bad input."""
+
+
+@dataclass
+class Frame:
+    """One LiDAR scan with whatever ground truth its dataset carries (see module doc)."""
+
+    index: int
+    timestamp: float
+    points: np.ndarray
+    intensity: np.ndarray | None = None
+    point_times: np.ndarray | None = None
+    gt_pose: np.ndarray | None = None
+    gt_flow: np.ndarray | None = None
+    gt_dynamic: np.ndarray | None = None
+    gt_class: np.ndarray | None = None
+    gt_instance: np.ndarray | None = None
+    source: str = ""
+    """The file (or bag/topic) this scan came from, for messages."""
+    extras: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+_PER_POINT = ("intensity", "point_times", "gt_flow", "gt_dynamic", "gt_class", "gt_instance")
+
+
+def sanitize_frame(frame: Frame, min_points: int = MIN_VALID_POINTS) -> Frame:
+    """Drop points with NaN/inf coordinates (logging the count) and reject near-empty scans.
+
+    Every per-point array is filtered with the same mask. Raises ``InputError``
+    naming ``frame.source`` when fewer than ``min_points`` valid points remain.
+    """
+    pts = np.asarray(frame.points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputError(frame.source, f"points have shape {pts.shape}, expected (N, 3)")
+    ok = np.isfinite(pts).all(axis=1)
+    n_bad = int(len(ok) - ok.sum())
+    if n_bad:
+        log.warning("%s: dropped %d points with NaN/inf coordinates", frame.source, n_bad)
+        for name in _PER_POINT:
+            arr = getattr(frame, name)
+            if arr is not None:
+                setattr(frame, name, np.asarray(arr)[ok])
+        pts = pts[ok]
+    frame.points = pts
+    frame.extras["dropped_nonfinite"] = n_bad
+    if len(pts) < min_points:
+        raise InputError(
+            frame.source, f"only {len(pts)} valid points in this scan (need at least {min_points})"
+        )
+    return frame
+
+
+class Dataset:
+    """Base class of all readers: a random-access sequence of ``Frame``.
+
+    Subclasses set ``name``, ``path`` and implement ``__len__`` and ``_load(i)``;
+    ``__getitem__`` sanitises every frame. ``gt_poses`` is an optional (N,4,4)
+    array of ``T_world_sensor`` and ``timestamps`` an (N,) array in seconds.
+    """
+
+    name: str = "dataset"
+    gt_poses: np.ndarray | None = None
+    timestamps: np.ndarray | None = None
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+
+    def __len__(self) -> int:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _load(self, index: int) -> Frame:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def __getitem__(self, index: int) -> Frame:
+        if not 0 <= index < len(self):
+            raise IndexError(index)
+        return sanitize_frame(self._load(index))
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    @property
+    def has_gt_poses(self) -> bool:
+        return self.gt_poses is not None
+
+    def describe(self) -> str:
+        return f"{self.name} ({len(self)} frames) at {self.path}"

@@ -1,0 +1,1 @@
+"""Trajectory evaluation: APE, RPE, KITTI drift, SSF-PAN Table I statistics."""

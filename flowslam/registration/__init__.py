@@ -1,0 +1,1 @@
+"""Robust point-set registration: weighted Kabsch, IRLS, RANSAC, covariance."""

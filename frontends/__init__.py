@@ -1,0 +1,1 @@
+"""Frontends: per-scan motion estimation (and, for flow frontends, per-point flow)."""
