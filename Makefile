@@ -1,0 +1,27 @@
+# The two commands of the README:
+#   make demo   runs flowslam on the default sequence (creates .venv on first use)
+#   make test   runs the test suite              (creates .venv on first use)
+VENV ?= .venv
+PYTHON ?= python3
+DATA ?= ../shared/data
+DEMO_SEQ ?= $(DATA)/kitti-odometry-00-first16
+export VENV PYTHON
+
+STAMP := $(VENV)/.flowslam-installed
+
+.PHONY: demo test setup clean-venv
+
+$(STAMP): pyproject.toml tools/setup_env.sh
+	bash tools/setup_env.sh
+	touch $@
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/flowslam run --frontend kiss-icp --backend odometry $(DEMO_SEQ)
+
+test: $(STAMP)
+	$(VENV)/bin/python -m pytest -q
+
+clean-venv:
+	rm -rf $(VENV)

@@ -1,0 +1,200 @@
+"""The ``flowslam`` command line (typer). Heavy modules are imported inside commands.
+
+Bad input (``InputError``) prints one line, ``flowslam: error: FILE: problem``, and
+exits with code 2; ``--debug`` shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+app = typer.Typer(
+    name="flowslam",
+    help="LiDAR SLAM with scene flow as odometry, on a GTSAM factor graph.",
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+)
+
+_state = {"debug": False}
+
+
+def _stderr_console():
+    from rich.console import Console
+
+    return Console(stderr=True)
+
+
+@app.callback()
+def _main(
+    debug: bool = typer.Option(False, "--debug", help="Show tracebacks and debug logs."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="Only warnings and errors."),
+):
+    _state["debug"] = debug
+    from rich.logging import RichHandler
+
+    level = logging.DEBUG if debug else logging.WARNING if quiet else logging.INFO
+    logging.basicConfig(
+        level=level, format="%(message)s", force=True,
+        handlers=[RichHandler(console=_stderr_console(), show_path=debug, show_time=False)],
+    )
+
+
+@contextmanager
+def _user_errors():
+    """Turn ``InputError`` into one line on stderr and exit code 2 (unless --debug)."""
+    from flowslam.errors import InputError
+
+    try:
+        yield
+    except InputError as error:
+        if _state["debug"]:
+            raise
+        print(f"flowslam: error: {error}", file=sys.stderr)
+        raise typer.Exit(code=2) from None
+
+
+def _progress():
+    from rich.progress import (
+        BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    return Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+        TextColumn("{task.fields[fps]:>6.1f} frames/s"), TimeElapsedColumn(),
+        TimeRemainingColumn(), console=_stderr_console(), transient=False,
+    )
+
+
+@app.command()
+def run(
+    sequence: Path = typer.Argument(..., help="Sequence: KITTI folder, scan folder, ROS bag, AV2 log."),
+    frontend: Optional[str] = typer.Option(None, "--frontend", "-f", help="Frontend name (default kiss-icp)."),
+    backend: Optional[str] = typer.Option(None, "--backend", "-b", help="Backend name (default odometry)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (see `flowslam config`)."),
+    output_dir: Optional[Path] = typer.Option(None, "--output-dir", "-o", help="Where run folders go (default results/)."),
+    fmt: Optional[str] = typer.Option(None, "--format", help="Force the reader: kitti, folder, rosbag, argoverse2."),
+    topic: Optional[str] = typer.Option(None, "--topic", help="ROS bags: the PointCloud2 topic."),
+    gt_topic: Optional[str] = typer.Option(None, "--gt-topic", help="ROS bags: Odometry/PoseStamped GT topic."),
+    sequence_id: Optional[str] = typer.Option(None, "--sequence", help="KITTI sequence id (e.g. 00)."),
+    poses: Optional[Path] = typer.Option(None, "--poses", help="Scan folders: GT poses file (KITTI or TUM)."),
+    first: Optional[int] = typer.Option(None, "--first", help="First frame index."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", "-n", help="Process at most N frames."),
+    no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
+):
+    """Estimate the trajectory of SEQUENCE and write it (TUM, KITTI), metrics and a plot."""
+    with _user_errors():
+        from flowslam.config import load_config
+
+        cfg = load_config(
+            config,
+            frontend=frontend, backend=backend, output_dir=output_dir and str(output_dir),
+            **{
+                "dataset.format": fmt, "dataset.topic": topic, "dataset.gt_topic": gt_topic,
+                "dataset.sequence": sequence_id, "dataset.poses": poses and str(poses),
+                "dataset.first_frame": first, "dataset.max_frames": max_frames,
+            },
+        )
+        from flowslam.run import run_sequence
+
+        if no_progress:
+            outcome = run_sequence(sequence, cfg)
+        else:
+            with _progress() as bar:
+                task = {}
+                outcome = run_sequence(
+                    sequence, cfg,
+                    on_start=lambda n: task.setdefault("id", bar.add_task(cfg.frontend, total=n, fps=0.0)),
+                    on_frame=lambda k, s: bar.update(task["id"], advance=1, fps=1.0 / max(s, 1e-9)),
+                )
+        _report_run(outcome)
+        outcome.raise_for_error()
+
+
+def _report_run(outcome) -> None:
+    from rich.console import Console
+
+    console = Console()
+    result = outcome.result
+    if outcome.metrics is not None:
+        from flowslam.evaluation import render_table
+
+        console.print(render_table(outcome.metrics))
+    console.print(
+        f"{len(result.indices)} frames, {result.frames_per_second:.1f} frames/s; "
+        f"results in [bold]{outcome.run_dir}[/bold]"
+    )
+    if result.error is not None:
+        console.print(
+            f"[yellow]stopped at frame {result.failed_index}; the trajectory of the "
+            f"{len(result.indices)} frames before it is written.[/yellow]"
+        )
+
+
+@app.command("eval")
+def evaluate_command(
+    estimate: Path = typer.Argument(..., help="Estimated trajectory (TUM or KITTI file)."),
+    ground_truth: Path = typer.Argument(..., help="Ground-truth trajectory (TUM or KITTI file)."),
+    max_diff: float = typer.Option(0.01, "--max-diff", help="Max timestamp difference (s) for association."),
+    delta: list[str] = typer.Option(["1"], "--delta", help="RPE deltas: N (frames) or Nm (metres); repeatable."),
+    no_align: bool = typer.Option(False, "--no-align", help="APE without Umeyama SE(3) alignment."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the metrics as JSON."),
+):
+    """Compare an estimated trajectory with ground truth: APE, RPE, KITTI drift, Table I stats."""
+    with _user_errors():
+        from rich.console import Console
+
+        from flowslam.errors import InputError
+        from flowslam.evaluation import evaluate, render_table
+        from flowslam.trajectory import read_trajectory
+
+        deltas = []
+        for d in delta:
+            unit = "m" if d.endswith("m") else "frames"
+            try:
+                value = float(d[:-1]) if unit == "m" else int(d)
+            except ValueError:
+                raise InputError(None, f"--delta {d!r}: use an integer (frames) or a number + 'm'") from None
+            if value <= 0:
+                raise InputError(None, f"--delta {d!r} must be positive")
+            deltas.append((value, unit))
+        est, gt = read_trajectory(estimate), read_trajectory(ground_truth)
+        metrics = evaluate(est, gt, max_diff=max_diff, rpe_deltas=tuple(deltas), align=not no_align)
+        Console().print(render_table(metrics))
+        if json_out is not None:
+            from flowslam.results import write_json
+
+            write_json(json_out, metrics)
+
+
+@app.command("config")
+def config_command(
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="Show this file merged over the defaults."),
+):
+    """Print the run configuration as YAML (the defaults, or a file merged over them)."""
+    with _user_errors():
+        from flowslam.config import dump_config, load_config
+
+        typer.echo(dump_config(load_config(config)), nl=False)
+
+
+@app.command("plugins")
+def plugins_command():
+    """List the registered frontends, backends and dataset formats."""
+    from flowslam.datasets import available_formats
+    from flowslam.registry import backend_names, frontend_names
+
+    typer.echo("frontends: " + ", ".join(frontend_names()))
+    typer.echo("backends:  " + ", ".join(backend_names()))
+    typer.echo("datasets:  " + ", ".join(available_formats()))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    app()

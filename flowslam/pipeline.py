@@ -1,0 +1,86 @@
+"""The run loop: dataset -> frontend -> backend, one scan at a time.
+
+Thin on purpose (like KISS-ICP's pipeline): it reads each frame, hands it to the
+frontend, passes the measurement to the backend, and records timings. It never
+loses work: any error (bad input in frame k, a crash, Ctrl-C) stops the loop and
+is kept in ``RunResult.error`` so the caller can still write the trajectory of
+the frames processed so far, then report the error.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from flowslam.datasets.frame import Dataset
+from flowslam.interfaces import Backend, Frontend
+from flowslam.trajectory import Trajectory
+
+
+@dataclass
+class RunResult:
+    """Outcome of a run. ``poses`` are ``T_world_sensor`` with world = first processed scan."""
+
+    indices: list[int] = field(default_factory=list)
+    """Dataset frame index of each processed scan."""
+    timestamps: list[float] = field(default_factory=list)
+    """Scan timestamps (s)."""
+    seconds_per_frame: list[float] = field(default_factory=list)
+    """Wall time of read + frontend + backend for each scan (s)."""
+    poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    odometry: list[np.ndarray] = field(default_factory=list)
+    """The frontend's relative motions ``T_prev_curr`` (one fewer than scans)."""
+    frontend_stats: list[dict] = field(default_factory=list)
+    error: BaseException | None = None
+    failed_index: int | None = None
+    """Dataset index of the scan during which ``error`` happened."""
+
+    @property
+    def trajectory(self) -> Trajectory:
+        return Trajectory(self.poses, np.asarray(self.timestamps, dtype=np.float64))
+
+    @property
+    def frames_per_second(self) -> float:
+        total = float(np.sum(self.seconds_per_frame))
+        return len(self.seconds_per_frame) / total if total > 0 else float("nan")
+
+
+def run_pipeline(
+    dataset: Dataset,
+    frontend: Frontend,
+    backend: Backend,
+    frames: range | None = None,
+    on_frame: Callable[[int, float], None] | None = None,
+) -> RunResult:
+    """Process ``frames`` (dataset indices, default all) in order.
+
+    ``on_frame(k, seconds)`` is called after each scan (for progress bars).
+    Exceptions, including ``KeyboardInterrupt``, end the loop and are stored in
+    the result instead of propagating.
+    """
+    frames = range(len(dataset)) if frames is None else frames
+    result = RunResult()
+    for k, index in enumerate(frames):
+        start = time.perf_counter()
+        try:
+            frame = dataset[index]
+            out = frontend.process(frame)
+            backend.add_odometry(index, out.T_prev_curr, out.covariance)
+        except (Exception, KeyboardInterrupt) as error:  # keep what is done, report after writing
+            result.error, result.failed_index = error, index
+            break
+        if out.T_prev_curr is not None:
+            result.odometry.append(out.T_prev_curr)
+        result.indices.append(index)
+        result.timestamps.append(float(frame.timestamp))
+        result.frontend_stats.append(out.stats)
+        seconds = time.perf_counter() - start
+        result.seconds_per_frame.append(seconds)
+        if on_frame is not None:
+            on_frame(k, seconds)
+    # A backend that failed half-way through a scan may hold one pose too many.
+    result.poses = backend.trajectory()[: len(result.indices)] if result.indices else np.zeros((0, 4, 4))
+    return result

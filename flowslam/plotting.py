@@ -1,0 +1,46 @@
+"""Top-view trajectory plots (PNG), drawn headless with matplotlib's Agg backend."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def plot_top_view(
+    path: str | Path,
+    estimate: np.ndarray,
+    ground_truth: np.ndarray | None = None,
+    title: str = "",
+) -> Path:
+    """Write an x-y top view of ``estimate`` (K,4,4) and optionally ``ground_truth``.
+
+    Both are ``T_world_sensor`` stacks. The estimate is drawn in the GT's world
+    frame by anchoring its first pose on the GT's first pose (no other
+    alignment, so drift shows as it is). Axes in metres, equal scale.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    est = np.asarray(estimate)
+    fig, ax = plt.subplots(figsize=(7, 7), dpi=120)
+    if ground_truth is not None and len(ground_truth):
+        gt = np.asarray(ground_truth)
+        est = gt[0] @ np.linalg.inv(est[0]) @ est
+        ax.plot(gt[:, 0, 3], gt[:, 1, 3], "--", color="0.35", lw=1.5, label="ground truth")
+    ax.plot(est[:, 0, 3], est[:, 1, 3], "-", color="tab:blue", lw=1.5, label="estimate")
+    ax.plot(est[:1, 0, 3], est[:1, 1, 3], "o", color="tab:green", label="start")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best")
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path)
+    plt.close(fig)
+    return path

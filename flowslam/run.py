@@ -1,0 +1,109 @@
+"""``flowslam run`` as a library call: open a sequence, run the pipeline, write the results.
+
+>>> from flowslam.config import load_config
+>>> from flowslam.run import run_sequence
+>>> outcome = run_sequence("path/to/kitti", load_config())          # doctest: +SKIP
+>>> outcome.run_dir, outcome.metrics["rpe"]                          # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import logging
+import platform
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from flowslam import __version__
+from flowslam.config import PipelineConfig
+from flowslam.datasets import open_dataset
+from flowslam.pipeline import RunResult, run_pipeline
+from flowslam.registry import make_backend, make_frontend
+from flowslam.results import create_results_dir, write_results
+from flowslam.trajectory import Trajectory
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RunOutcome:
+    run_dir: Path
+    result: RunResult
+    metrics: dict | None
+    dataset_name: str
+
+    def raise_for_error(self) -> None:
+        """Re-raise the error that stopped the run early, if any."""
+        if self.result.error is not None:
+            raise self.result.error
+
+
+def _frame_range(n: int, config: PipelineConfig) -> range:
+    first = config.dataset.first_frame
+    stop = n if config.dataset.max_frames is None else min(n, first + config.dataset.max_frames)
+    return range(first, stop)
+
+
+def _ground_truth(dataset, result: RunResult) -> Trajectory | None:
+    if dataset.gt_poses is None or not result.indices:
+        return None
+    return Trajectory(np.asarray(dataset.gt_poses)[result.indices], result.timestamps)
+
+
+def run_sequence(
+    path: str | Path,
+    config: PipelineConfig,
+    *,
+    on_start: Callable[[int], None] | None = None,
+    on_frame: Callable[[int, float], None] | None = None,
+) -> RunOutcome:
+    """Run ``config.frontend`` + ``config.backend`` on the sequence at ``path``.
+
+    Always writes the results directory, also when the run stops early on an
+    error: the error is then in ``outcome.result.error`` (call
+    ``outcome.raise_for_error()`` to re-raise it). Errors before the first scan
+    (a missing path, an unknown frontend) raise directly.
+    ``on_start(n_frames)`` / ``on_frame(k, seconds)`` drive a progress display.
+    """
+    dsc = config.dataset
+    dataset = open_dataset(
+        path, fmt=dsc.format, topic=dsc.topic, gt_topic=dsc.gt_topic,
+        sequence=dsc.sequence, poses=dsc.poses,
+    )
+    frames = _frame_range(len(dataset), config)
+    frontend = make_frontend(config.frontend, config)
+    backend = make_backend(config.backend, config)
+    run_dir = create_results_dir(
+        config.output_dir, f"{Path(path).name}_{config.frontend}_{config.backend}"
+    )
+    log.info("%s -> %s", dataset.describe(), run_dir)
+    if on_start is not None:
+        on_start(len(frames))
+    result = run_pipeline(dataset, frontend, backend, frames, on_frame)
+
+    gt = _ground_truth(dataset, result)
+    metrics = None
+    if gt is not None and len(result.indices) >= 2:
+        from flowslam.evaluation import evaluate
+
+        metrics = evaluate(result.trajectory, gt)
+    run_info = {
+        "flowslam_version": __version__,
+        "python": platform.python_version(),
+        "sequence": str(path),
+        "dataset": dataset.describe(),
+        "frontend": config.frontend,
+        "backend": config.backend,
+        "frames_requested": len(frames),
+        "frames_processed": len(result.indices),
+        "first_index": result.indices[0] if result.indices else None,
+        "frames_per_second": result.frames_per_second,
+        "median_ms_per_frame": float(np.median(result.seconds_per_frame) * 1e3)
+        if result.seconds_per_frame else None,
+        "error": None if result.error is None else str(result.error),
+        "failed_index": result.failed_index,
+    }
+    write_results(run_dir, result, config, gt, metrics, run_info)
+    return RunOutcome(run_dir, result, metrics, dataset.describe())
