@@ -80,13 +80,12 @@ def _load_table(path: Path) -> np.ndarray:
     return table
 
 
-def detect_format(table_or_path) -> str:
-    """``"kitti"`` for 12 columns, ``"tum"`` for 8; raises ``InputError`` otherwise."""
-    if isinstance(table_or_path, (str, Path)):
-        path = Path(table_or_path)
-        table = _load_table(path)
-    else:
-        path, table = None, table_or_path
+def detect_format(path: str | Path, table: np.ndarray | None = None) -> str:
+    """``"kitti"`` for 12 columns, ``"tum"`` for 8; raises ``InputError`` otherwise.
+
+    ``table`` is the file's already-parsed numbers, if the caller has them.
+    """
+    table = _load_table(Path(path)) if table is None else table
     ncol = table.shape[1]
     if ncol == 12:
         return "kitti"
@@ -99,7 +98,7 @@ def read_trajectory(path: str | Path, fmt: str | None = None) -> Trajectory:
     """Read a KITTI or TUM trajectory file (format guessed from the column count)."""
     path = Path(path)
     table = _load_table(path)
-    fmt = fmt or detect_format(table)
+    fmt = fmt or detect_format(path, table)
     if fmt == "kitti":
         if table.shape[1] != 12:
             raise InputError(path, f"KITTI poses need 12 numbers per line, found {table.shape[1]}")
