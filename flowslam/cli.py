@@ -143,6 +143,7 @@ def evaluate_command(
     estimate: Path = typer.Argument(..., help="Estimated trajectory (TUM or KITTI file)."),
     ground_truth: Path = typer.Argument(..., help="Ground-truth trajectory (TUM or KITTI file)."),
     max_diff: float = typer.Option(0.01, "--max-diff", help="Max timestamp difference (s) for association."),
+    offset: float = typer.Option(0.0, "--offset", help="Seconds added to the estimate's timestamps."),
     delta: list[str] = typer.Option(["1"], "--delta", help="RPE deltas: N (frames) or Nm (metres); repeatable."),
     no_align: bool = typer.Option(False, "--no-align", help="APE without Umeyama SE(3) alignment."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the metrics as JSON."),
@@ -166,7 +167,10 @@ def evaluate_command(
                 raise InputError(None, f"--delta {d!r} must be positive")
             deltas.append((value, unit))
         est, gt = read_trajectory(estimate), read_trajectory(ground_truth)
-        metrics = evaluate(est, gt, max_diff=max_diff, rpe_deltas=tuple(deltas), align=not no_align)
+        metrics = evaluate(
+            est, gt, max_diff=max_diff, offset=offset, rpe_deltas=tuple(deltas),
+            align=not no_align, est_name=str(estimate), gt_name=str(ground_truth),
+        )
         Console().print(render_table(metrics))
         if json_out is not None:
             from flowslam.results import write_json

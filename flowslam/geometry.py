@@ -94,8 +94,11 @@ def compose_relatives(T_prev_curr: np.ndarray, T_world_first: np.ndarray | None 
 def rotation_angle(T_or_R: np.ndarray) -> np.ndarray | float:
     """Rotation angle in radians of (...,4,4) transforms or (...,3,3) rotations, in [0, pi]."""
     R = np.asarray(T_or_R)[..., :3, :3]
+    # atan2(sin, cos) keeps full precision for tiny angles, where arccos(trace) does not.
     cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.arccos(np.clip(cos, -1.0, 1.0))
+    axis = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    sin = np.linalg.norm(axis, axis=-1) / 2.0
+    return np.arctan2(sin, cos)
 
 
 def translation_norm(T: np.ndarray) -> np.ndarray | float:

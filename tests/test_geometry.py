@@ -58,3 +58,9 @@ def test_hat_is_cross_product_and_is_se3():
     bad = np.eye(4)
     bad[0, 0] = 2
     assert not g.is_se3(bad)
+
+
+def test_rotation_angle_precise_for_tiny_and_large_angles():
+    for angle in [1e-9, 1e-6, 0.3, np.pi - 1e-6]:
+        T = g.make_T(Rotation.from_rotvec(angle * np.array([1.0, -2.0, 2.0]) / 3.0).as_matrix())
+        assert g.rotation_angle(T) == pytest.approx(angle, rel=1e-6)
