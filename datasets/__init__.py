@@ -1,1 +1,134 @@
-"""Dataset readers (one class per module) and the format-guessing factory."""
+"""Dataset readers (one class per module) and the format-guessing factory.
+
+``open_dataset(path)`` guesses the format from the path (user-registered formats
+first, then): a ``.bag`` file, or a folder with ``metadata.yaml`` / ``*.db3`` /
+``*.mcap`` -> ``rosbag``; a folder with ``sequences/`` or ``velodyne/`` -> ``kitti``;
+a folder with ``sensors/lidar/`` -> ``argoverse2``; any other folder -> ``folder``
+(a folder of scan files). ``fmt=`` overrides the guess.
+
+The reader modules (and their heavy dependencies rosbags / pyarrow / open3d) are
+imported only when a dataset of that format is opened.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from flowslam.datasets.frame import Dataset, Frame
+from flowslam.errors import InputError
+
+__all__ = ["Dataset", "Frame", "open_dataset", "available_formats", "register_format"]
+
+
+@dataclass(frozen=True)
+class _Format:
+    name: str
+    opener: Callable[..., Dataset]
+    detect: Callable[[Path], bool]
+    options: tuple[str, ...] | None
+    """Keyword options the reader takes; None = pass every option that was given."""
+
+
+def _lazy(module: str, cls: str) -> Callable[..., Dataset]:
+    def open_(*args: Any, **kwargs: Any) -> Dataset:
+        return getattr(importlib.import_module(f"flowslam.datasets.{module}"), cls)(*args, **kwargs)
+
+    open_.__name__ = cls
+    return open_
+
+
+def _has_any(path: Path, *suffixes: str) -> bool:
+    return path.is_dir() and any(p.suffix in suffixes for p in path.iterdir())
+
+
+def _is_rosbag(path: Path) -> bool:
+    if path.is_file():
+        return path.suffix in (".bag", ".db3", ".mcap")
+    return (path / "metadata.yaml").is_file() or _has_any(path, ".db3", ".mcap")
+
+
+def _is_kitti(path: Path) -> bool:
+    return path.is_dir() and (
+        (path / "sequences").is_dir() or (path / "velodyne").is_dir() or (path.name == "velodyne")
+    )
+
+
+def _is_argoverse2(path: Path) -> bool:
+    return (path / "sensors" / "lidar").is_dir()
+
+
+_BUILTIN = [
+    _Format("rosbag", _lazy("rosbag", "RosBag"), _is_rosbag, ("topic", "gt_topic")),
+    _Format("kitti", _lazy("kitti", "KittiOdometry"), _is_kitti, ("sequence",)),
+    _Format("argoverse2", _lazy("argoverse2", "Argoverse2Log"), _is_argoverse2, ()),
+    _Format("folder", _lazy("folder", "ScanFolder"), Path.is_dir, ("poses",)),
+]
+_USER: list[_Format] = []
+
+
+def register_format(
+    name: str, cls: Callable[..., Dataset], detect_fn: Callable[[Path], bool] | None = None
+) -> None:
+    """Register a reader ``cls(path, **options)`` under ``name``.
+
+    ``detect_fn(path) -> bool`` makes ``open_dataset`` pick it automatically; user
+    formats are tried before the built-in ones (latest registration first). Without
+    it the format is used only with ``fmt=name``. The reader receives the options
+    (``topic``, ``gt_topic``, ``sequence``, ``poses``) that were not None.
+    Registering an existing name replaces that entry.
+    """
+    _USER[:] = [f for f in _USER if f.name != name]
+    _USER.insert(0, _Format(name, cls, detect_fn or (lambda _p: False), None))
+
+
+def _formats() -> list[_Format]:
+    user_names = {f.name for f in _USER}
+    return _USER + [f for f in _BUILTIN if f.name not in user_names]
+
+
+def available_formats() -> list[str]:
+    """Names usable as ``fmt=`` (user-registered first, then the built-ins)."""
+    return [f.name for f in _formats()]
+
+
+def open_dataset(
+    path: str | Path,
+    *,
+    fmt: str | None = None,
+    topic: str | None = None,
+    gt_topic: str | None = None,
+    sequence: str | int | None = None,
+    poses: str | Path | None = None,
+) -> Dataset:
+    """Open a dataset, guessing its format from ``path`` unless ``fmt`` is given (module doc).
+
+    Raises ``InputError`` for a missing path, an unknown ``fmt``, an undetectable
+    format, or an option that the chosen reader does not take.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "does not exist")
+    formats = _formats()
+    if fmt is not None:
+        chosen = next((f for f in formats if f.name == fmt), None)
+        if chosen is None:
+            raise InputError(path, f"unknown format {fmt!r} (available: {', '.join(f.name for f in formats)})")
+    else:
+        chosen = next((f for f in formats if f.detect(path)), None)
+        if chosen is None:
+            raise InputError(
+                path, f"cannot tell the dataset format; pass fmt= (one of {', '.join(f.name for f in formats)})"
+            )
+    options = dict(topic=topic, gt_topic=gt_topic, sequence=sequence, poses=poses)
+    given = {k: v for k, v in options.items() if v is not None}
+    if chosen.options is not None:
+        unused = sorted(set(given) - set(chosen.options))
+        if unused:
+            raise InputError(
+                path, f"option(s) {', '.join(unused)} do not apply to the {chosen.name} format"
+                + ("" if fmt else " (detected; pass fmt= to choose another)"),
+            )
+    return chosen.opener(path, **given)

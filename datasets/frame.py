@@ -50,6 +50,7 @@ class Frame:
     source: str = ""
     """The file (or bag/topic) this scan came from, for messages."""
     extras: dict = field(default_factory=dict)
+    """Reader-specific data; arrays of length N in here are per-point and filtered with the points."""
 
     def __len__(self) -> int:
         return len(self.points)
@@ -67,14 +68,18 @@ def sanitize_frame(frame: Frame, min_points: int = MIN_VALID_POINTS) -> Frame:
     pts = np.asarray(frame.points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InputError(frame.source, f"points have shape {pts.shape}, expected (N, 3)")
-    ok = np.isfinite(pts).all(axis=1)
-    n_bad = int(len(ok) - ok.sum())
-    if n_bad:
+    n_bad = 0
+    if not np.isfinite(pts).all():  # fast path: one pass, no per-row mask for clean scans
+        ok = np.isfinite(pts).all(axis=1)
+        n_bad = int(len(ok) - ok.sum())
         log.warning("%s: dropped %d points with NaN/inf coordinates", frame.source, n_bad)
         for name in _PER_POINT:
             arr = getattr(frame, name)
             if arr is not None:
                 setattr(frame, name, np.asarray(arr)[ok])
+        for key, arr in frame.extras.items():  # per-point arrays kept in extras
+            if isinstance(arr, np.ndarray) and arr.ndim >= 1 and len(arr) == len(ok):
+                frame.extras[key] = arr[ok]
         pts = pts[ok]
     frame.points = pts
     frame.extras["dropped_nonfinite"] = n_bad
