@@ -173,7 +173,7 @@ class RosBag(Dataset):
                 raise InputError(self.bag_path, f"has no {POINTCLOUD2} topic (topics: {listed})")
             if len(clouds) > 1:
                 raise InputError(
-                    self.bag_path, f"has several PointCloud2 topics ({', '.join(clouds)}); pick one with topic="
+                    self.bag_path, f"has several PointCloud2 topics ({', '.join(clouds)}); pick one with --topic (topic= in Python)"
                 )
             return clouds[0]
         if topics.get(topic) != POINTCLOUD2:

@@ -203,7 +203,7 @@ def test_several_and_unknown_topics(bags):
     with pytest.raises(InputError) as err:
         RosBag(bag)
     assert err.value.where == str(bag)
-    assert "several PointCloud2 topics (/aux_points, /points); pick one with topic=" in err.value.problem
+    assert "several PointCloud2 topics (/aux_points, /points); pick one with --topic (topic= in Python)" in err.value.problem
     with pytest.raises(InputError) as err:
         RosBag(bag, topic="/lidar")
     assert err.value.where == str(bag)
