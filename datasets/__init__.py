@@ -62,7 +62,7 @@ def _is_argoverse2(path: Path) -> bool:
 
 _BUILTIN = [
     _Format("rosbag", _lazy("rosbag", "RosBag"), _is_rosbag, ("topic", "gt_topic")),
-    _Format("kitti", _lazy("kitti", "KittiOdometry"), _is_kitti, ("sequence",)),
+    _Format("kitti", _lazy("kitti", "KittiOdometry"), _is_kitti, ("sequence", "vertical_correction_deg")),
     _Format("argoverse2", _lazy("argoverse2", "Argoverse2Log"), _is_argoverse2, ()),
     _Format("folder", _lazy("folder", "ScanFolder"), Path.is_dir, ("poses",)),
 ]
@@ -77,7 +77,8 @@ def register_format(
     ``detect_fn(path) -> bool`` makes ``open_dataset`` pick it automatically; user
     formats are tried before the built-in ones (latest registration first). Without
     it the format is used only with ``fmt=name``. The reader receives the options
-    (``topic``, ``gt_topic``, ``sequence``, ``poses``) that were not None.
+    (``topic``, ``gt_topic``, ``sequence``, ``poses``, ``vertical_correction_deg``)
+    that were not None.
     Registering an existing name replaces that entry.
     """
     _USER[:] = [f for f in _USER if f.name != name]
@@ -102,6 +103,7 @@ def open_dataset(
     gt_topic: str | None = None,
     sequence: str | int | None = None,
     poses: str | Path | None = None,
+    vertical_correction_deg: float | None = None,
 ) -> Dataset:
     """Open a dataset, guessing its format from ``path`` unless ``fmt`` is given (module doc).
 
@@ -122,7 +124,10 @@ def open_dataset(
             raise InputError(
                 path, f"cannot tell the dataset format; pass fmt= (one of {', '.join(f.name for f in formats)})"
             )
-    options = dict(topic=topic, gt_topic=gt_topic, sequence=sequence, poses=poses)
+    options = dict(
+        topic=topic, gt_topic=gt_topic, sequence=sequence, poses=poses,
+        vertical_correction_deg=vertical_correction_deg,
+    )
     given = {k: v for k, v in options.items() if v is not None}
     if chosen.options is not None:
         unused = sorted(set(given) - set(chosen.options))

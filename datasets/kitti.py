@@ -77,6 +77,24 @@ def _find_sequence_dir(path: Path, sequence: str | int | None) -> tuple[Path, st
     return seq_root / seq, seq
 
 
+KITTI_VERTICAL_CORRECTION_DEG = 0.205
+"""Elevation error of KITTI's published Velodyne scans (deg), corrected at read time."""
+
+
+def correct_elevation(points: np.ndarray, angle_rad: float) -> np.ndarray:
+    """Rotate each point upwards by ``angle_rad`` in its own vertical plane (range kept).
+
+    The rotation axis of point p is ``p x z`` (horizontal, perpendicular to p), so
+    the elevation grows by ``angle_rad`` and the azimuth stays.
+    """
+    with np.errstate(invalid="ignore"):  # NaN rows stay NaN; sanitize_frame drops them
+        axis = np.cross(points, [0.0, 0.0, 1.0])
+        norm = np.linalg.norm(axis, axis=1, keepdims=True)
+        axis = np.divide(axis, norm, out=np.zeros_like(axis), where=norm > 0)
+        # Rodrigues with axis perpendicular to p: p cos(a) + (axis x p) sin(a)
+        return points * np.cos(angle_rad) + np.cross(axis, points) * np.sin(angle_rad)
+
+
 class KittiOdometry(Dataset):
     """One KITTI odometry sequence (see module doc for frames and units).
 
@@ -85,12 +103,22 @@ class KittiOdometry(Dataset):
             folder ``sequences/XX`` (poses looked up in ``../../poses/XX.txt``) or
             its ``velodyne`` folder.
         sequence: which sequence (``"00"`` or ``0``) when the root holds several.
+        vertical_correction_deg: raise every beam's elevation by this angle
+            (default 0.205 deg, KITTI's known HDL-64E intrinsic-calibration error, the
+            correction KISS-ICP and IMLS-SLAM apply to KITTI scans); 0 reads the
+            points exactly as stored.
     """
 
     name = "kitti"
 
-    def __init__(self, path: str | Path, sequence: str | int | None = None):
+    def __init__(
+        self,
+        path: str | Path,
+        sequence: str | int | None = None,
+        vertical_correction_deg: float = KITTI_VERTICAL_CORRECTION_DEG,
+    ):
         super().__init__(path)
+        self.vertical_correction_deg = float(vertical_correction_deg)
         if not self.path.exists():
             raise InputError(self.path, "does not exist")
         self.sequence_dir, self.sequence = _find_sequence_dir(self.path, sequence)
@@ -132,6 +160,8 @@ class KittiOdometry(Dataset):
     def _load(self, index: int) -> Frame:
         path = self.scan_files[index]
         points, intensity = read_kitti_bin(path)
+        if self.vertical_correction_deg:
+            points = correct_elevation(points, np.deg2rad(self.vertical_correction_deg))
         return Frame(
             index=index,
             timestamp=float(self.timestamps[index]),

@@ -85,6 +85,8 @@ def run(
     gt_topic: Optional[str] = typer.Option(None, "--gt-topic", help="ROS bags: Odometry/PoseStamped GT topic."),
     sequence_id: Optional[str] = typer.Option(None, "--sequence", help="KITTI sequence id (e.g. 00)."),
     poses: Optional[Path] = typer.Option(None, "--poses", help="Scan folders: GT poses file (KITTI or TUM)."),
+    kitti_correction: Optional[float] = typer.Option(
+        None, "--kitti-correction-deg", help="KITTI beam elevation correction (default 0.205; 0 = off)."),
     first: Optional[int] = typer.Option(None, "--first", help="First frame index."),
     max_frames: Optional[int] = typer.Option(None, "--max-frames", "-n", help="Process at most N frames."),
     no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
@@ -99,6 +101,7 @@ def run(
             **{
                 "dataset.format": fmt, "dataset.topic": topic, "dataset.gt_topic": gt_topic,
                 "dataset.sequence": sequence_id, "dataset.poses": poses and str(poses),
+                "dataset.kitti_vertical_correction_deg": kitti_correction,
                 "dataset.first_frame": first, "dataset.max_frames": max_frames,
             },
         )

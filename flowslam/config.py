@@ -30,6 +30,8 @@ class DatasetConfig(_Strict):
     """ROS bags: nav_msgs/Odometry or geometry_msgs/PoseStamped topic with GT poses."""
     poses: Path | None = None
     """Folder datasets: a KITTI or TUM GT poses file."""
+    kitti_vertical_correction_deg: float | None = None
+    """KITTI: beam elevation correction (deg); None = the reader's default 0.205, 0 = off."""
     first_frame: int = 0
     max_frames: int | None = None
 

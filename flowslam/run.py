@@ -71,6 +71,7 @@ def run_sequence(
     dataset = open_dataset(
         path, fmt=dsc.format, topic=dsc.topic, gt_topic=dsc.gt_topic,
         sequence=dsc.sequence, poses=dsc.poses,
+        vertical_correction_deg=dsc.kitti_vertical_correction_deg,
     )
     frames = _frame_range(len(dataset), config)
     frontend = make_frontend(config.frontend, config)

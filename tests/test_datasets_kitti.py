@@ -63,7 +63,8 @@ def test_real_extract_frames_and_points(kitti: KittiOdometry, kitti_extract: Pat
         counts.append(len(frame))
     assert 120_000 <= min(counts) and max(counts) <= 125_000  # 120295 .. 124668 (README says ~121-125k)
     raw = np.fromfile(kitti_extract / "sequences/00/velodyne/000003.bin", dtype=np.float32).reshape(-1, 4)
-    np.testing.assert_array_equal(kitti[3].points, raw[:, :3].astype(np.float64))
+    exact = KittiOdometry(kitti_extract, vertical_correction_deg=0)
+    np.testing.assert_array_equal(exact[3].points, raw[:, :3].astype(np.float64))
 
 
 def test_real_extract_times_and_gt(kitti: KittiOdometry, kitti_extract: Path):
@@ -199,3 +200,15 @@ def test_missing_path_and_non_kitti_folder(tmp_path: Path):
         KittiOdometry(tmp_path / "nope")
     with pytest.raises(InputError, match="not a KITTI odometry folder"):
         KittiOdometry(tmp_path)
+
+
+def test_vertical_correction_matches_kiss_icp(kitti_extract):
+    """Our elevation correction equals the one KISS-ICP applies to KITTI scans (real oracle)."""
+    from kiss_icp.pybind import kiss_icp_pybind
+
+    raw = KittiOdometry(kitti_extract, vertical_correction_deg=0)[3].points
+    ours = KittiOdometry(kitti_extract)[3].points
+    theirs = np.asarray(kiss_icp_pybind._correct_kitti_scan(kiss_icp_pybind._Vector3dVector(raw)))
+    np.testing.assert_allclose(ours, theirs, atol=1e-9)
+    assert np.abs(ours - raw).max() > 0.05  # it does move far points
+    np.testing.assert_allclose(np.linalg.norm(ours, axis=1), np.linalg.norm(raw, axis=1), atol=1e-9)
