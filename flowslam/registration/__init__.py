@@ -1,1 +1,23 @@
-"""Robust point-set registration: weighted Kabsch, IRLS, RANSAC, covariance."""
+"""Robust point-set registration: weighted Kabsch, IRLS, RANSAC, covariance.
+
+All routines estimate ``T_dst_src`` (4x4, maps source points onto the target,
+``dst ~= R src + t``, metres) and report covariances in GTSAM's Pose3 tangent order
+``[omega, v]`` under the right perturbation (see :mod:`flowslam.geometry`).
+"""
+
+from .covariance import covariance_from_residuals
+from .robust import irls
+from .closed_form import kabsch
+from .kernels import Kernel, get_kernel
+from .consensus import ransac
+from .result import RegistrationResult
+
+__all__ = [
+    "kabsch",
+    "irls",
+    "ransac",
+    "RegistrationResult",
+    "covariance_from_residuals",
+    "get_kernel",
+    "Kernel",
+]
