@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flowslam.datasets.frame import Dataset, Frame
+from flowslam.datasets.frame import ScanFileDataset
 from flowslam.datasets.scan_files import (
     DEFAULT_SCAN_PERIOD,
     SCAN_SUFFIXES,
@@ -63,7 +63,7 @@ def timestamps_from_stems(files: list[Path]) -> np.ndarray | None:
     return values
 
 
-class ScanFolder(Dataset):
+class ScanFolder(ScanFileDataset):
     """A folder of scan files with optional GT poses (see module doc).
 
     Args:
@@ -108,17 +108,6 @@ class ScanFolder(Dataset):
         log.warning("%s: no timestamps found, assuming %.1f s between scans", self.path, DEFAULT_SCAN_PERIOD)
         return np.arange(len(self.scan_files)) * DEFAULT_SCAN_PERIOD
 
-    def __len__(self) -> int:
-        return len(self.scan_files)
-
-    def _load(self, index: int) -> Frame:
-        path = self.scan_files[index]
+    def _read(self, path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         points, intensity = read_scan(path)
-        return Frame(
-            index=index,
-            timestamp=float(self.timestamps[index]),
-            points=points,
-            intensity=intensity,
-            gt_pose=None if self.gt_poses is None else self.gt_poses[index],
-            source=str(path),
-        )
+        return points, intensity

@@ -126,3 +126,31 @@ class Dataset:
 
     def describe(self) -> str:
         return f"{self.name} ({len(self)} frames) at {self.path}"
+
+
+class ScanFileDataset(Dataset):
+    """A dataset with one scan file per frame (KITTI, scan folders).
+
+    Subclasses set ``scan_files`` (ordered), ``timestamps`` and optionally
+    ``gt_poses``, and implement ``_read(path) -> (points (N,3), intensity (N,) or None)``.
+    """
+
+    scan_files: list[Path]
+
+    def __len__(self) -> int:
+        return len(self.scan_files)
+
+    def _read(self, path: Path) -> tuple[np.ndarray, np.ndarray | None]:  # pragma: no cover
+        raise NotImplementedError
+
+    def _load(self, index: int) -> Frame:
+        path = self.scan_files[index]
+        points, intensity = self._read(path)
+        return Frame(
+            index=index,
+            timestamp=float(self.timestamps[index]),
+            points=points,
+            intensity=intensity,
+            gt_pose=None if self.gt_poses is None else self.gt_poses[index],
+            source=str(path),
+        )

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from flowslam import geometry
-from flowslam.datasets.frame import Dataset, Frame
+from flowslam.datasets.frame import ScanFileDataset
 from flowslam.datasets.scan_files import DEFAULT_SCAN_PERIOD, natural_key, read_kitti_bin, read_times_file
 from flowslam.errors import InputError
 from flowslam.trajectory import read_trajectory
@@ -95,7 +95,7 @@ def correct_elevation(points: np.ndarray, angle_rad: float) -> np.ndarray:
         return points * np.cos(angle_rad) + np.cross(axis, points) * np.sin(angle_rad)
 
 
-class KittiOdometry(Dataset):
+class KittiOdometry(ScanFileDataset):
     """One KITTI odometry sequence (see module doc for frames and units).
 
     Args:
@@ -154,19 +154,8 @@ class KittiOdometry(Dataset):
         Tr = self.T_cam0_velo
         return geometry.inv(Tr) @ traj.poses @ Tr
 
-    def __len__(self) -> int:
-        return len(self.scan_files)
-
-    def _load(self, index: int) -> Frame:
-        path = self.scan_files[index]
+    def _read(self, path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         points, intensity = read_kitti_bin(path)
         if self.vertical_correction_deg:
             points = correct_elevation(points, np.deg2rad(self.vertical_correction_deg))
-        return Frame(
-            index=index,
-            timestamp=float(self.timestamps[index]),
-            points=points,
-            intensity=intensity,
-            gt_pose=None if self.gt_poses is None else self.gt_poses[index],
-            source=str(path),
-        )
+        return points, intensity

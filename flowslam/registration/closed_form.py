@@ -110,9 +110,14 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
         ps = sT - cs[:, None]
         ps *= w
     dT -= cd[:, None]
-    H = np.einsum("in,jn->ij", ps, dT)
+    return rigid_from_moments(np.einsum("in,jn->ij", ps, dT), cs, cd)
+
+
+def rigid_from_moments(H: np.ndarray, cs: np.ndarray, cd: np.ndarray) -> np.ndarray:
+    """``T_dst_src`` from the centred cross-covariance ``H = sum w p_c q_c^T`` and the
+    weighted centroids ``cs`` (source) and ``cd`` (target); ValueError if degenerate."""
     s = np.linalg.svd(H, compute_uv=False)
-    if s[1] <= DEGENERACY_RTOL * s[0] or s[0] == 0.0:
+    if not np.all(np.isfinite(s)) or s[0] == 0.0 or s[1] <= DEGENERACY_RTOL * s[0]:
         raise ValueError("degenerate correspondences: the (weighted) points are collinear or coincident")
     R = _rotation_from_cross_covariance(H)
     T = np.eye(4)

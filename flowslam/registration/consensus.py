@@ -37,11 +37,10 @@ import numpy as np
 
 from .robust import (
     CHI3_MEDIAN,
-    _inlier_covariance,
+    build_result,
     _Moments,
     _normalise_prior,
     _residual_norms,
-    _rmse,
     _run,
 )
 from .closed_form import check_correspondences, kabsch_batch
@@ -244,20 +243,9 @@ def ransac(
         if prior is not None:
             w *= prior
 
-    inliers = r < threshold
-    if active is not None:
-        inliers &= active
-    return RegistrationResult(
-        T=T,
-        weights=w,
-        inliers=inliers,
-        covariance=_inlier_covariance(src, r, inliers, prior),
-        residuals=r,
-        iterations=drawn,
-        converged=bool(drawn >= required) and irls_converged,
-        num_inliers=int(np.count_nonzero(inliers)),
-        rmse=_rmse(r, inliers),
-        scale=scale,
+    return build_result(
+        src, T, r, w, r < threshold, active=active, prior=prior, iterations=drawn,
+        converged=bool(drawn >= required) and irls_converged, scale=scale,
         info={
             "hypotheses": hypotheses,
             "required": required,

@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 
 from .covariance import covariance_from_squared_residuals
-from .closed_form import DEGENERACY_RTOL, _rotation_from_cross_covariance, check_correspondences, squared_residuals
+from .closed_form import check_correspondences, rigid_from_moments, squared_residuals
 from .kernels import Kernel, get_kernel
 from .result import RegistrationResult
 
@@ -145,14 +145,7 @@ class _Moments:
         cs = m[9:12] / wsum
         cd = m[12:15] / wsum
         H = m[:9].reshape(3, 3).T - wsum * np.outer(cs, cd)  # sum w p_c q_c^T
-        s = np.linalg.svd(H, compute_uv=False)
-        if not np.all(np.isfinite(s)) or s[0] == 0.0 or s[1] <= DEGENERACY_RTOL * s[0]:
-            raise ValueError("degenerate correspondences: the weighted points are collinear or coincident")
-        R = _rotation_from_cross_covariance(H)
-        Tc = np.eye(4)
-        Tc[:3, :3] = R
-        Tc[:3, 3] = cd - R @ cs
-        return Tc
+        return rigid_from_moments(H, cs, cd)
 
 
 def _step_size(T_old: np.ndarray, T_new: np.ndarray) -> tuple[float, float]:
@@ -241,20 +234,45 @@ def _run(
     return T, r, kernel_weights(r2, sigma), sigma, iterations, converged
 
 
-def _inlier_covariance(src: np.ndarray, r: np.ndarray, inliers: np.ndarray, prior: np.ndarray | None) -> np.ndarray:
-    """Least-squares covariance of the inlier set (NaNs if it is degenerate)."""
-    w = inliers.astype(np.float64)
+def build_result(
+    src: np.ndarray,
+    T: np.ndarray,
+    r: np.ndarray,
+    w: np.ndarray,
+    inliers: np.ndarray,
+    *,
+    active: np.ndarray | None,
+    prior: np.ndarray | None,
+    iterations: int,
+    converged: bool,
+    scale: float,
+    info: dict,
+) -> RegistrationResult:
+    """Assemble a ``RegistrationResult``: restrict inliers to ``active`` points, then the
+    inlier covariance (NaNs if degenerate) and RMSE, shared by IRLS and RANSAC."""
+    if active is not None:
+        inliers = inliers & active
+    cw = inliers.astype(np.float64)
     if prior is not None:
-        w *= prior
+        cw *= prior
     try:
-        return covariance_from_squared_residuals(src, r * r, w)
+        covariance = covariance_from_squared_residuals(src, r * r, cw)
     except ValueError:
-        return np.full((6, 6), np.nan)
-
-
-def _rmse(r: np.ndarray, inliers: np.ndarray) -> float:
+        covariance = np.full((6, 6), np.nan)
     ri = r[inliers]
-    return float(np.sqrt(np.mean(ri * ri))) if ri.size else float("nan")
+    return RegistrationResult(
+        T=T,
+        weights=w,
+        inliers=inliers,
+        covariance=covariance,
+        residuals=r,
+        iterations=iterations,
+        converged=converged,
+        num_inliers=int(np.count_nonzero(inliers)),
+        rmse=float(np.sqrt(np.mean(ri * ri))) if ri.size else float("nan"),
+        scale=scale,
+        info=info,
+    )
 
 
 def irls(
@@ -328,19 +346,8 @@ def irls(
     T, r, w, sigma, iterations, converged = _run(
         src, dst, mom, kern, T0, prior, active, scale, max_iterations, tolerance, min_scale
     )
-    inliers = r < inlier_factor * sigma
-    if active is not None:
-        inliers &= active
-    return RegistrationResult(
-        T=T,
-        weights=w,
-        inliers=inliers,
-        covariance=_inlier_covariance(src, r, inliers, prior),
-        residuals=r,
-        iterations=iterations,
-        converged=converged,
-        num_inliers=int(np.count_nonzero(inliers)),
-        rmse=_rmse(r, inliers),
-        scale=sigma,
+    return build_result(
+        src, T, r, w, r < inlier_factor * sigma, active=active, prior=prior,
+        iterations=iterations, converged=converged, scale=sigma,
         info={"kernel": kern.name, "kernel_width": kern.tuning * sigma},
     )
