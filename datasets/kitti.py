@@ -82,17 +82,21 @@ KITTI_VERTICAL_CORRECTION_DEG = 0.205
 
 
 def correct_elevation(points: np.ndarray, angle_rad: float) -> np.ndarray:
-    """Rotate each point upwards by ``angle_rad`` in its own vertical plane (range kept).
+    """Rotate each point upwards by ``angle_rad`` in its own vertical plane.
 
-    The rotation axis of point p is ``p x z`` (horizontal, perpendicular to p), so
-    the elevation grows by ``angle_rad`` and the azimuth stays.
+    Range and azimuth stay; the elevation grows by ``angle_rad`` (the rotation
+    about the horizontal axis ``p x z``). Points on the z axis are left as they are.
     """
-    with np.errstate(invalid="ignore"):  # NaN rows stay NaN; sanitize_frame drops them
-        axis = np.cross(points, [0.0, 0.0, 1.0])
-        norm = np.linalg.norm(axis, axis=1, keepdims=True)
-        axis = np.divide(axis, norm, out=np.zeros_like(axis), where=norm > 0)
-        # Rodrigues with axis perpendicular to p: p cos(a) + (axis x p) sin(a)
-        return points * np.cos(angle_rad) + np.cross(axis, points) * np.sin(angle_rad)
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    rho = np.hypot(x, y)
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    out = np.empty_like(points)
+    with np.errstate(invalid="ignore", divide="ignore"):  # NaN rows stay NaN; sanitize_frame drops them
+        ratio = np.where(rho > 0, (rho * c - z * s) / rho, 1.0)
+    out[:, 0] = x * ratio
+    out[:, 1] = y * ratio
+    out[:, 2] = np.where(rho > 0, z * c + rho * s, z)
+    return out
 
 
 class KittiOdometry(ScanFileDataset):
