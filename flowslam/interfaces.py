@@ -74,3 +74,33 @@ class Backend(Protocol):
     def trajectory(self) -> np.ndarray:
         """Current estimate: (K,4,4) ``T_world_sensor`` for every scan added so far."""
         ...
+
+
+@dataclass
+class LoopClosure:
+    """A verified loop constraint between an earlier scan ``i`` and the current scan ``j``.
+
+    ``T_i_j`` maps points of scan j into sensor frame i (4x4, m); ``covariance`` is
+    6x6 in the Pose3 tangent of ``T_i_j`` ([rot rad, trans m]).
+    """
+
+    i: int
+    j: int
+    T_i_j: np.ndarray
+    covariance: np.ndarray
+    fitness: float = float("nan")
+    """Share of scan j's points with a neighbour in scan i after alignment (0..1)."""
+    inlier_rmse: float = float("nan")
+    """RMSE of the aligned correspondences (m)."""
+    descriptor_distance: float = float("nan")
+    info: dict = field(default_factory=dict)
+
+
+@runtime_checkable
+class LoopCloser(Protocol):
+    """Finds and verifies loops; the pipeline passes every accepted one to the backend."""
+
+    def add_scan(self, index: int, points: np.ndarray, T_world_sensor: np.ndarray) -> list[LoopClosure]:
+        """Add scan ``index`` (points (N,3) in its sensor frame, its current pose estimate)
+        and return the loops it closes with earlier scans (possibly none)."""
+        ...

@@ -15,8 +15,8 @@ from typing import Callable
 
 import numpy as np
 
-from flowslam.datasets.frame import Dataset
-from flowslam.interfaces import Backend, Frontend
+from flowslam.datasets.frame import Dataset, Frame
+from flowslam.interfaces import Backend, Frontend, FrontendOutput, LoopCloser, LoopClosure
 from flowslam.trajectory import Trajectory
 
 
@@ -34,6 +34,8 @@ class RunResult:
     odometry: list[np.ndarray] = field(default_factory=list)
     """The frontend's relative motions ``T_prev_curr`` (one fewer than scans)."""
     frontend_stats: list[dict] = field(default_factory=list)
+    loops: list[LoopClosure] = field(default_factory=list)
+    """Loop closures accepted and passed to the backend."""
     error: BaseException | None = None
     failed_index: int | None = None
     """Dataset index of the scan during which ``error`` happened."""
@@ -54,10 +56,16 @@ def run_pipeline(
     backend: Backend,
     frames: range | None = None,
     on_frame: Callable[[int, float], None] | None = None,
+    loop_closer: LoopCloser | None = None,
+    on_output: Callable[[Frame, FrontendOutput], None] | None = None,
 ) -> RunResult:
     """Process ``frames`` (dataset indices, default all) in order.
 
-    ``on_frame(k, seconds)`` is called after each scan (for progress bars).
+    Per scan: frontend -> ``backend.add_odometry`` -> (if ``loop_closer``) the scan
+    and its current pose estimate go to the loop closer, and every loop it
+    returns goes to ``backend.add_loop``. ``on_output(frame, output)`` sees each
+    frontend output (e.g. to build the static map); ``on_frame(k, seconds)`` is
+    called after each scan (for progress bars).
     Exceptions, including ``KeyboardInterrupt``, end the loop and are stored in
     the result instead of propagating.
     """
@@ -69,6 +77,13 @@ def run_pipeline(
             frame = dataset[index]
             out = frontend.process(frame)
             backend.add_odometry(index, out.T_prev_curr, out.covariance)
+            if on_output is not None:
+                on_output(frame, out)
+            if loop_closer is not None:
+                T_world_sensor = backend.trajectory()[-1]
+                for loop in loop_closer.add_scan(index, frame.points, T_world_sensor):
+                    backend.add_loop(loop.i, loop.j, loop.T_i_j, loop.covariance)
+                    result.loops.append(loop)
         except (Exception, KeyboardInterrupt) as error:  # keep what is done, report after writing
             result.error, result.failed_index = error, index
             break

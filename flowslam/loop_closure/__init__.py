@@ -1,0 +1,1 @@
+"""Loop closure: place recognition (Scan Context) and geometric verification (ICP)."""

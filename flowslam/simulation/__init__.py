@@ -1,0 +1,1 @@
+"""LiDAR simulator: procedural towns, moving actors, ray-cast sensors, exact ground truth."""
