@@ -33,6 +33,9 @@ class OdometryBackend:
         self.loops_ignored += 1
         log.debug("odometry backend ignores loop %d-%d", i, j)
 
+    def latest_pose(self) -> np.ndarray:
+        return self._poses[-1].copy()
+
     def trajectory(self) -> np.ndarray:
         return np.array(self._poses).reshape(-1, 4, 4)
 

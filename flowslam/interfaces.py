@@ -75,6 +75,10 @@ class Backend(Protocol):
         """Current estimate: (K,4,4) ``T_world_sensor`` for every scan added so far."""
         ...
 
+    def latest_pose(self) -> np.ndarray:
+        """Current estimate of the last scan's ``T_world_sensor`` (cheap: called every scan)."""
+        ...
+
 
 @dataclass
 class LoopClosure:

@@ -80,7 +80,7 @@ def run_pipeline(
             if on_output is not None:
                 on_output(frame, out)
             if loop_closer is not None:
-                T_world_sensor = backend.trajectory()[-1]
+                T_world_sensor = backend.latest_pose()
                 for loop in loop_closer.add_scan(index, frame.points, T_world_sensor):
                     backend.add_loop(loop.i, loop.j, loop.T_i_j, loop.covariance)
                     result.loops.append(loop)

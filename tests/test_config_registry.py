@@ -53,6 +53,9 @@ def test_library_user_registers_a_backend():
         def trajectory(self):
             return np.zeros((len(self.calls), 4, 4))
 
+        def latest_pose(self):
+            return np.eye(4)
+
     register_backend("recorder-test", lambda config: Recorder())
     assert "recorder-test" in backend_names() and "kiss-icp" in frontend_names()
     backend = make_backend("recorder-test", load_config())
