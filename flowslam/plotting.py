@@ -12,8 +12,13 @@ def plot_top_view(
     estimate: np.ndarray,
     ground_truth: np.ndarray | None = None,
     title: str = "",
+    loops: list[tuple[int, int]] = (),
+    odometry: np.ndarray | None = None,
 ) -> Path:
     """Write an x-y top view of ``estimate`` (K,4,4) and optionally ``ground_truth``.
+
+    ``loops`` are (i, j) positions *within* ``estimate`` joined by a red line
+    (accepted loop closures); ``odometry`` (K,4,4) is drawn thin for comparison.
 
     Both are ``T_world_sensor`` stacks. The estimate is drawn in the GT's world
     frame by anchoring its first pose on the GT's first pose (no other
@@ -25,12 +30,20 @@ def plot_top_view(
     import matplotlib.pyplot as plt
 
     est = np.asarray(estimate)
+    anchor = np.eye(4)
     fig, ax = plt.subplots(figsize=(7, 7), dpi=120)
     if ground_truth is not None and len(ground_truth):
         gt = np.asarray(ground_truth)
-        est = gt[0] @ np.linalg.inv(est[0]) @ est
+        anchor = gt[0] @ np.linalg.inv(est[0])
         ax.plot(gt[:, 0, 3], gt[:, 1, 3], "--", color="0.35", lw=1.5, label="ground truth")
+    est = anchor @ est
+    if odometry is not None and len(odometry) > 1 and len(loops):
+        odo = anchor @ np.asarray(odometry)
+        ax.plot(odo[:, 0, 3], odo[:, 1, 3], "-", color="tab:orange", lw=0.8, label="odometry only")
     ax.plot(est[:, 0, 3], est[:, 1, 3], "-", color="tab:blue", lw=1.5, label="estimate")
+    for n, (i, j) in enumerate(loops):
+        ax.plot(est[[i, j], 0, 3], est[[i, j], 1, 3], "-", color="tab:red", lw=1.0,
+                label=f"loop closures ({len(loops)})" if n == 0 else None)
     ax.plot(est[:1, 0, 3], est[:1, 1, 3], "o", color="tab:green", label="start")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")

@@ -6,6 +6,7 @@ the trajectory of the frames it processed):
 - ``trajectory_tum.txt``, ``trajectory_kitti.txt``: the estimate (``T_world_sensor``,
   world = first processed scan).
 - ``odometry_tum.txt``: the frontend's relative motions chained (no backend).
+- ``loops.csv``: accepted loop closures (frames, fitness, RMSE, correction size).
 - ``gt_tum.txt``, ``gt_kitti.txt``: the dataset's GT for the processed frames.
 - ``config.yaml``: the configuration used.
 - ``metrics.json``: errors against GT (only when GT exists).
@@ -62,6 +63,18 @@ def write_json(path: Path, data: dict) -> None:
     path.write_text(json.dumps(data, indent=2, default=_json_default, allow_nan=True) + "\n")
 
 
+def write_loops_csv(path: Path, loops) -> None:
+    """One row per accepted loop: frames i and j, fitness, inlier RMSE (m), and the size of
+    the correction it asked for (translation m, rotation deg) from ``info`` where present."""
+    rows = ["i,j,fitness,inlier_rmse_m,descriptor_distance,correction_m,correction_deg"]
+    for lc in loops:
+        rows.append(
+            f"{lc.i},{lc.j},{lc.fitness:.4f},{lc.inlier_rmse:.4f},{lc.descriptor_distance:.4f},"
+            f"{lc.info.get('correction_m', float('nan')):.4f},{lc.info.get('correction_deg', float('nan')):.4f}"
+        )
+    path.write_text("\n".join(rows) + "\n")
+
+
 def write_results(
     run_dir: Path,
     result: RunResult,
@@ -89,6 +102,11 @@ def write_results(
         if gt is not None:
             write_tum(out("gt_tum.txt"), gt)
             write_kitti(out("gt_kitti.txt"), gt)
+        position = {index: k for k, index in enumerate(result.indices)}
+        loops = [(position[lc.i], position[lc.j]) for lc in result.loops
+                 if lc.i in position and lc.j in position]
+        if result.loops:
+            write_loops_csv(out("loops.csv"), result.loops)
         if plot and len(est) > 1:
             from flowslam.plotting import plot_top_view
 
@@ -97,6 +115,8 @@ def write_results(
                 est.poses,
                 None if gt is None else gt.poses,
                 title=f"{config.frontend} + {config.backend}",
+                loops=loops,
+                odometry=odo.poses,
             )
     if metrics is not None:
         write_json(out("metrics.json"), metrics)

@@ -1,0 +1,1 @@
+"""Learned scene flow after MambaFlow: model, selective scan, losses, metrics, training."""
