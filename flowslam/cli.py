@@ -73,6 +73,20 @@ def _progress():
     )
 
 
+def _progress_callbacks(bar, label: str):
+    """``on_start(n)`` / ``on_frame(k, seconds)`` that drive ``bar`` with the mean frames/s so far."""
+    state = {"task": None, "seconds": 0.0}
+
+    def on_start(n: int) -> None:
+        state["task"] = bar.add_task(label, total=n, fps=0.0)
+
+    def on_frame(k: int, seconds: float) -> None:
+        state["seconds"] += seconds
+        bar.update(state["task"], advance=1, fps=(k + 1) / max(state["seconds"], 1e-9))
+
+    return on_start, on_frame
+
+
 @app.command()
 def run(
     sequence: Path = typer.Argument(..., help="Sequence: KITTI folder, scan folder, ROS bag, AV2 log."),
@@ -111,12 +125,8 @@ def run(
             outcome = run_sequence(sequence, cfg)
         else:
             with _progress() as bar:
-                task = {}
-                outcome = run_sequence(
-                    sequence, cfg,
-                    on_start=lambda n: task.setdefault("id", bar.add_task(cfg.frontend, total=n, fps=0.0)),
-                    on_frame=lambda k, s: bar.update(task["id"], advance=1, fps=1.0 / max(s, 1e-9)),
-                )
+                on_start, on_frame = _progress_callbacks(bar, cfg.frontend)
+                outcome = run_sequence(sequence, cfg, on_start=on_start, on_frame=on_frame)
         _report_run(outcome)
         outcome.raise_for_error()
 
