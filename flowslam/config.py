@@ -13,6 +13,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from flowslam.errors import InputError
+from flowslam.flow_odometry import FlowOdometryConfig
 
 
 class _Strict(BaseModel):
@@ -51,12 +52,26 @@ class KissIcpConfig(_Strict):
     """... and this fixed 1-sigma translation (m) per axis."""
 
 
+class OutputConfig(_Strict):
+    """What a run writes besides the trajectories."""
+
+    static_map: bool = True
+    """Write ``static_map.ply`` (points marked dynamic removed, optimised poses)."""
+    map_voxel_size: float = 0.2
+    """Voxel size (m) of the static map."""
+    map_points_per_frame: int = 10000
+    """Points kept per scan for the map (memory: ~60 kB per scan)."""
+    plot: bool = True
+
+
 class PipelineConfig(_Strict):
     frontend: str = "kiss-icp"
     backend: str = "odometry"
     output_dir: Path = Path("results")
     dataset: DatasetConfig = DatasetConfig()
+    output: OutputConfig = OutputConfig()
     kiss_icp: KissIcpConfig = KissIcpConfig()
+    flow_odometry: FlowOdometryConfig = FlowOdometryConfig()
 
 
 def load_config(path: Path | None = None, **overrides) -> PipelineConfig:

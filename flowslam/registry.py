@@ -22,6 +22,8 @@ Factory = Callable[[Any], Any]
 
 _FRONTENDS: dict[str, Factory | str] = {
     "kiss-icp": "flowslam.frontends.kiss_icp:make_frontend",
+    "gt": "flowslam.frontends.ground_truth:make_gt_frontend",
+    "gt-flow": "flowslam.frontends.ground_truth:make_gt_flow_frontend",
 }
 _BACKENDS: dict[str, Factory | str] = {
     "odometry": "flowslam.backends.odometry:make_backend",

@@ -12,6 +12,10 @@ the trajectory of the frames it processed):
 - ``metrics.json``: errors against GT (only when GT exists).
 - ``run.json``: what happened (frames, speed, error if any).
 - ``trajectory_topview.png``: estimate vs GT, seen from above.
+- ``static_map.ply``: the map (world frame, m) from the final poses, without the
+  points the frontend marked dynamic (written by ``flowslam.run``).
+- ``moving_objects.csv``: per frame, each moving instance's centroid and velocity
+  (world frame; only frontends that give instance ids).
 """
 
 from __future__ import annotations

@@ -19,6 +19,9 @@ import numpy as np
 from flowslam import __version__
 from flowslam.config import PipelineConfig
 from flowslam.datasets import open_dataset
+from flowslam.flow_odometry import summarize_fallbacks
+from flowslam.mapping import StaticMapBuilder
+from flowslam.moving_objects import MovingObjectsLog
 from flowslam.pipeline import RunResult, run_pipeline
 from flowslam.registry import make_backend, make_frontend
 from flowslam.results import create_results_dir, write_results
@@ -52,6 +55,32 @@ def _ground_truth(dataset, result: RunResult) -> Trajectory | None:
     return Trajectory(np.asarray(dataset.gt_poses)[result.indices], result.timestamps)
 
 
+class _OutputSinks:
+    """Per-frame consumers of frontend outputs: the static map and the moving objects."""
+
+    def __init__(self, config: PipelineConfig):
+        out = config.output
+        self.map = (
+            StaticMapBuilder(out.map_voxel_size, out.map_points_per_frame) if out.static_map else None
+        )
+        self.objects = MovingObjectsLog()
+
+    def on_output(self, frame, output) -> None:
+        if self.map is not None:
+            self.map.on_output(frame, output)
+        self.objects.on_output(frame, output)
+
+    def write(self, run_dir: Path, result: RunResult) -> None:
+        """``static_map.ply`` and (if any object was seen) ``moving_objects.csv``, with the
+        final (optimised) poses of the processed scans."""
+        if not result.indices:
+            return
+        if self.map is not None:
+            self.map.write(run_dir / "static_map.ply", result.poses, result.indices)
+        if self.objects.objects:
+            self.objects.write_csv(run_dir / "moving_objects.csv", result.poses, result.indices)
+
+
 def run_sequence(
     path: str | Path,
     config: PipelineConfig,
@@ -80,9 +109,10 @@ def run_sequence(
         config.output_dir, f"{Path(path).name}_{config.frontend}_{config.backend}"
     )
     log.info("%s -> %s", dataset.describe(), run_dir)
+    sinks = _OutputSinks(config)
     if on_start is not None:
         on_start(len(frames))
-    result = run_pipeline(dataset, frontend, backend, frames, on_frame)
+    result = run_pipeline(dataset, frontend, backend, frames, on_frame, on_output=sinks.on_output)
 
     gt = _ground_truth(dataset, result)
     metrics = None
@@ -105,6 +135,9 @@ def run_sequence(
         if result.seconds_per_frame else None,
         "error": None if result.error is None else str(result.error),
         "failed_index": result.failed_index,
+        "fallbacks": summarize_fallbacks(result.frontend_stats),
+        "loop_closures": len(result.loops),
     }
     write_results(run_dir, result, config, gt, metrics, run_info)
+    sinks.write(run_dir, result)
     return RunOutcome(run_dir, result, metrics, dataset.describe())

@@ -1,0 +1,155 @@
+"""Static map: a static scene from two poses coincides, dynamic points are absent,
+PLY round trip through Open3D, the run_pipeline adapter, the memory bound."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from flowslam import geometry
+from flowslam.interfaces import FrontendOutput
+from flowslam.mapping import StaticMapBuilder, poses_by_index, voxel_downsample, write_ply
+
+from test_flow_odometry import street_scene
+from test_ground_truth_frontends import synthetic_sequence
+
+
+def test_voxel_downsample_centroids():
+    pts = np.array([[0.01, 0.01, 0.01], [0.09, 0.09, 0.09], [0.51, 0.0, 0.0], [-0.01, 0.0, 0.0]])
+    out = voxel_downsample(pts, 0.2)
+    assert len(out) == 3
+    assert any(np.allclose(o, [0.05, 0.05, 0.05]) for o in out)
+    assert voxel_downsample(np.zeros((0, 3)), 0.2).shape == (0, 3)
+
+
+def test_static_scene_from_two_poses_coincides_and_dynamic_points_are_absent():
+    rng = np.random.default_rng(0)
+    world = street_scene(rng, 60000)
+    lo, hi = np.array([-0.5, 2.5, -1.6]), np.array([1.0, 4.0, 0.6])  # free space for the pedestrian
+    world = world[~np.all((world > lo) & (world < hi), axis=1)]
+    T_a = np.eye(4)
+    T_b = geometry.from_euler("zyx", [7.0, 0.5, -0.3], t=[3.3, 0.7, 0.05], degrees=True)
+    # a pedestrian in free space, seen (moving) in scan b only
+    person = rng.uniform([0, 3, -1.5], [0.5, 3.5, 0.1], size=(300, 3))
+    pts_a = geometry.transform_points(geometry.inv(T_a), world)
+    pts_b = np.vstack([geometry.transform_points(geometry.inv(T_b), world),
+                       geometry.transform_points(geometry.inv(T_b), person)])
+    static_b = np.r_[np.ones(len(world), bool), np.zeros(len(person), bool)]
+
+    builder = StaticMapBuilder(voxel_size=0.2, max_points_per_frame=10**6)
+    builder.add(0, pts_a, None)
+    builder.add(1, pts_b, static_b)
+    one = builder.build({0: T_a})
+    both = builder.build({0: T_a, 1: T_b})
+    # the two views of the same static scene fall onto the same voxels (grid offsets
+    # between the per-scan and the world grid add a fringe, no second copy)
+    assert len(one) <= len(both) < 1.6 * len(one)
+    d_true, _ = cKDTree(world).query(both)
+    assert np.percentile(d_true, 99) < 0.2  # every map point lies on the scene
+    # no map point near the pedestrian, which only the dynamic points saw
+    d_person, _ = cKDTree(person).query(both)
+    assert d_person.min() > 0.15  # (the ground is 0.2 m below)
+
+    wrong = builder.build({0: T_a, 1: np.eye(4)})  # the wrong pose doubles the scene
+    assert len(wrong) > 1.8 * len(one)
+
+
+def test_poses_array_with_indices_and_missing_poses():
+    builder = StaticMapBuilder(voxel_size=0.5)
+    pts = np.random.default_rng(1).uniform(-5, 5, (500, 3))
+    builder.add(10, pts)
+    builder.add(11, pts)
+    poses = np.stack([np.eye(4), geometry.make_T(t=[100.0, 0, 0])])
+    m = builder.build(poses, indices=[10, 11])
+    assert m[:, 0].max() > 90 and m[:, 0].min() < -4
+    assert len(builder.build(poses[:1], indices=[10])) < len(m)  # scan 11 has no pose: left out
+    assert set(poses_by_index(poses, [10, 11])) == {10, 11}
+    with pytest.raises(ValueError, match="indices"):
+        poses_by_index(poses, [1])
+
+
+def test_memory_bound_and_storage_precision():
+    builder = StaticMapBuilder(voxel_size=0.1, max_points_per_frame=1000)
+    pts = np.random.default_rng(2).uniform(-50, 50, (20000, 3))
+    pts[0] = [400.0, 0.0, 0.0]  # beyond the int16-centimetre range
+    assert builder.add(0, pts) <= 1000
+    assert builder.frames[0].dtype == np.int16 and len(builder.frames[0]) <= 1000
+    near = np.random.default_rng(3).uniform(-5, 5, (50, 3))
+    builder2 = StaticMapBuilder(voxel_size=1e-4)
+    builder2.add(0, near)
+    np.testing.assert_allclose(np.sort(builder2.points_of(0), axis=0), np.sort(near, axis=0), atol=0.005 + 1e-9)
+    b3 = StaticMapBuilder(voxel_size=0.1)
+    b3.add(0, np.array([[400.0, 0, 0], [1.0, 2.0, 3.0]]))
+    assert b3.dropped_out_of_range == 1 and len(b3.frames[0]) == 1
+
+
+def test_ply_round_trip_with_open3d(tmp_path: Path):
+    o3d = pytest.importorskip("open3d")
+    pts = np.random.default_rng(4).uniform(-100, 100, (1234, 3))
+    path = write_ply(tmp_path / "sub" / "static_map.ply", pts)
+    cloud = o3d.io.read_point_cloud(str(path))
+    np.testing.assert_allclose(np.asarray(cloud.points), pts.astype(np.float32), rtol=0, atol=0)
+    empty = write_ply(tmp_path / "empty.ply", np.zeros((0, 3)))
+    assert len(o3d.io.read_point_cloud(str(empty)).points) == 0
+
+
+def test_on_output_adapter_per_point_frontend(tmp_path: Path):
+    from flowslam.frontends.ground_truth import GroundTruthFlowFrontend
+
+    frames, poses = synthetic_sequence(n_frames=4)
+    frontend = GroundTruthFlowFrontend(use_labels=True)
+    builder = StaticMapBuilder(voxel_size=0.2)
+    for f in frames:
+        builder.on_output(f, frontend.process(f))
+    # scans 0..2 via the previous-scan outputs (scan 0's whole-scan entry replaced); the
+    # last scan never gets its flow
+    assert sorted(builder.frames) == [0, 1, 2]
+    world = builder.build(poses, indices=range(4))
+    car_world = [geometry.transform_points(poses[k], frames[k].points[frames[k].gt_dynamic]) for k in range(3)]
+    d, _ = cKDTree(np.vstack(car_world)).query(world)
+    assert d.min() > 0.15  # the moving car is not in the map (the ground is 0.2 m below it)
+    assert builder.write(tmp_path / "map.ply", poses) == len(world)
+
+
+def test_on_output_adapter_without_per_point_outputs():
+    """kiss-icp style: no points in the outputs -> each scan's own points, all of them."""
+    frames, _ = synthetic_sequence(n_frames=3)
+    builder = StaticMapBuilder(voxel_size=0.2)
+    for f in frames:
+        builder.on_output(f, FrontendOutput(index=f.index, T_prev_curr=None if f.index == 0 else np.eye(4)))
+    assert sorted(builder.frames) == [0, 1, 2]
+    car = frames[1].points[frames[1].gt_dynamic]
+    d, _ = cKDTree(builder.points_of(1)).query(car)
+    assert np.median(d) < 0.2  # no dynamic removal: the car is in
+
+
+@pytest.mark.parametrize("frontend", ["gt", "gt-flow"])
+def test_run_pipeline_on_av2_writes_a_static_map(av2_log: Path, tmp_path: Path, frontend: str):
+    """End to end: frontend -> odometry backend, the map via on_output, the final poses.
+    ``gt`` removes the 2037 moving points; ``gt-flow`` (no segmentation) keeps them."""
+    o3d = pytest.importorskip("open3d")
+    from flowslam.config import load_config
+    from flowslam.datasets import open_dataset
+    from flowslam.pipeline import run_pipeline
+    from flowslam.registry import make_backend, make_frontend
+
+    config = load_config()
+    ds = open_dataset(av2_log)
+    builder = StaticMapBuilder(voxel_size=0.2)
+    result = run_pipeline(ds, make_frontend(frontend, config), make_backend("odometry", config),
+                          on_output=builder.on_output)
+    assert result.error is None and result.indices == [0, 1]
+    assert sorted(builder.frames) == [0]  # scan 1 (the last) has no flow
+    n = builder.write(tmp_path / "static_map.ply", result.poses, result.indices)
+    cloud = o3d.io.read_point_cloud(str(tmp_path / "static_map.ply"))
+    assert len(cloud.points) == n > 20000
+    dyn_world = ds[0].points[ds[0].gt_dynamic]  # scan 0 is the world frame
+    d, _ = cKDTree(np.asarray(cloud.points)).query(dyn_world)
+    near = float(np.mean(d < 0.1))  # share of moving points with a map point within 10 cm
+    if frontend == "gt":
+        assert near < 0.02  # gone (a few touch static neighbours)
+    else:
+        assert near > 0.3
