@@ -92,6 +92,8 @@ def run(
     sequence: Path = typer.Argument(..., help="Sequence: KITTI folder, scan folder, ROS bag, AV2 log."),
     frontend: Optional[str] = typer.Option(None, "--frontend", "-f", help="Frontend name (default kiss-icp)."),
     backend: Optional[str] = typer.Option(None, "--backend", "-b", help="Backend name (default odometry)."),
+    variant: Optional[str] = typer.Option(
+        None, "--variant", help="isam2 backend: a-loam (odometry only) or s-loam (loop closure, default)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (see `flowslam config`)."),
     output_dir: Optional[Path] = typer.Option(None, "--output-dir", "-o", help="Where run folders go (default results/)."),
     fmt: Optional[str] = typer.Option(None, "--format", help="Force the reader: kitti, folder, rosbag, argoverse2."),
@@ -113,6 +115,7 @@ def run(
             config,
             frontend=frontend, backend=backend, output_dir=output_dir and str(output_dir),
             **{
+                "isam2.variant": variant,
                 "dataset.format": fmt, "dataset.topic": topic, "dataset.gt_topic": gt_topic,
                 "dataset.sequence": sequence_id, "dataset.poses": poses and str(poses),
                 "dataset.kitti_vertical_correction_deg": kitti_correction,

@@ -13,6 +13,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from flowslam.errors import InputError
+from flowslam.backends.isam2 import Isam2Config
 from flowslam.flow_odometry import FlowOdometryConfig
 
 
@@ -72,6 +73,7 @@ class PipelineConfig(_Strict):
     output: OutputConfig = OutputConfig()
     kiss_icp: KissIcpConfig = KissIcpConfig()
     flow_odometry: FlowOdometryConfig = FlowOdometryConfig()
+    isam2: Isam2Config = Isam2Config()
 
 
 def load_config(path: Path | None = None, **overrides) -> PipelineConfig:

@@ -27,6 +27,7 @@ _FRONTENDS: dict[str, Factory | str] = {
 }
 _BACKENDS: dict[str, Factory | str] = {
     "odometry": "flowslam.backends.odometry:make_backend",
+    "isam2": "flowslam.backends.isam2:make_backend",
 }
 
 

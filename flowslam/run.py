@@ -20,6 +20,7 @@ from flowslam import __version__
 from flowslam.config import PipelineConfig
 from flowslam.datasets import open_dataset
 from flowslam.flow_odometry import summarize_fallbacks
+from flowslam.loop_closure import make_loop_closer
 from flowslam.mapping import StaticMapBuilder
 from flowslam.moving_objects import MovingObjectsLog
 from flowslam.pipeline import RunResult, run_pipeline
@@ -112,7 +113,11 @@ def run_sequence(
     sinks = _OutputSinks(config)
     if on_start is not None:
         on_start(len(frames))
-    result = run_pipeline(dataset, frontend, backend, frames, on_frame, on_output=sinks.on_output)
+    loop_closer = make_loop_closer(config) if config.backend == "isam2" else None
+    result = run_pipeline(
+        dataset, frontend, backend, frames, on_frame,
+        loop_closer=loop_closer, on_output=sinks.on_output,
+    )
 
     gt = _ground_truth(dataset, result)
     metrics = None
@@ -137,6 +142,11 @@ def run_sequence(
         "failed_index": result.failed_index,
         "fallbacks": summarize_fallbacks(result.frontend_stats),
         "loop_closures": len(result.loops),
+        "loops": [
+            dict(i=lc.i, j=lc.j, fitness=lc.fitness, rmse_m=lc.inlier_rmse, **lc.info)
+            for lc in result.loops
+        ],
+        "backend_stats": getattr(backend, "stats", None),
     }
     write_results(run_dir, result, config, gt, metrics, run_info)
     sinks.write(run_dir, result)

@@ -76,3 +76,15 @@ def test_plugins_lists_builtins():
     proc = flowslam("plugins")
     assert proc.returncode == 0
     assert "kiss-icp" in proc.stdout and "odometry" in proc.stdout and "rosbag" in proc.stdout
+
+
+def test_isam2_a_loam_equals_odometry_backend(kitti_run, kitti_extract, tmp_path):
+    """Same kiss-icp measurements, no loops: the iSAM2 optimum is the composed chain."""
+    proc = flowslam("run", "--no-progress", "-f", "kiss-icp", "-b", "isam2", "--variant", "a-loam",
+                    "-o", tmp_path, kitti_extract)
+    assert proc.returncode == 0, proc.stderr
+    isam = read_trajectory(tmp_path / "latest" / "trajectory_kitti.txt")
+    odo = read_trajectory(kitti_run[0] / "latest" / "trajectory_kitti.txt")
+    np.testing.assert_allclose(isam.poses, odo.poses, atol=1e-6)
+    run = json.loads((tmp_path / "latest" / "run.json").read_text())
+    assert run["backend_stats"]["scans"] == 16 and run["loop_closures"] == 0
