@@ -60,8 +60,16 @@ def _is_argoverse2(path: Path) -> bool:
     return (path / "sensors" / "lidar").is_dir()
 
 
+def _is_simulated(path: Path) -> bool:
+    """A sequence written by ``flowslam simulate`` (a ``manifest.json`` at its root)."""
+    from flowslam.datasets.simulated import is_simulated
+
+    return is_simulated(path)
+
+
 _BUILTIN = [
     _Format("rosbag", _lazy("rosbag", "RosBag"), _is_rosbag, ("topic", "gt_topic")),
+    _Format("simulated", _lazy("simulated", "SimulatedSequence"), _is_simulated, ("sequence",)),
     _Format("kitti", _lazy("kitti", "KittiOdometry"), _is_kitti, ("sequence", "vertical_correction_deg")),
     _Format("argoverse2", _lazy("argoverse2", "Argoverse2Log"), _is_argoverse2, ()),
     _Format("folder", _lazy("folder", "ScanFolder"), Path.is_dir, ("poses",)),

@@ -34,7 +34,7 @@ def bag_paths(small_scan, tmp_path_factory) -> dict[str, Path]:
 
 
 def test_available_formats():
-    assert available_formats() == ["rosbag", "kitti", "argoverse2", "folder"]
+    assert available_formats() == ["rosbag", "simulated", "kitti", "argoverse2", "folder"]
 
 
 def test_detects_real_layouts(kitti_extract: Path, av2_log: Path):
@@ -72,7 +72,7 @@ def test_errors(kitti_extract: Path, tmp_path: Path):
     with pytest.raises(InputError) as err:
         open_dataset(tmp_path / "missing")
     assert str(err.value) == f"{tmp_path / 'missing'}: does not exist"
-    with pytest.raises(InputError, match=r"unknown format 'nuscenes' \(available: rosbag, kitti, argoverse2, folder\)"):
+    with pytest.raises(InputError, match=r"unknown format 'nuscenes' \(available: rosbag, simulated, kitti, argoverse2, folder\)"):
         open_dataset(kitti_extract, fmt="nuscenes")
     with pytest.raises(InputError, match=r"option\(s\) topic do not apply to the kitti format \(detected"):
         open_dataset(kitti_extract, topic="/points")
