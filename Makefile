@@ -1,6 +1,8 @@
 # The two commands of the README:
-#   make demo   runs flowslam on the default sequence (creates .venv on first use)
-#   make test   runs the test suite              (creates .venv on first use)
+#   make demo   simulates the embedded default sequence once, runs every frontend x backend
+#               on it and prints the errors (creates .venv on first use; no data needed)
+#   make test   runs the test suite (creates .venv on first use)
+# Also: make kitti   runs kiss-icp on the real KITTI extract in $(DATA)
 VENV ?= .venv
 PYTHON ?= python3
 DATA ?= ../shared/data
@@ -9,7 +11,7 @@ export VENV PYTHON
 
 STAMP := $(VENV)/.flowslam-installed
 
-.PHONY: demo test setup clean-venv
+.PHONY: demo kitti test setup clean-venv
 
 $(STAMP): pyproject.toml tools/setup_env.sh
 	bash tools/setup_env.sh
@@ -18,6 +20,9 @@ $(STAMP): pyproject.toml tools/setup_env.sh
 setup: $(STAMP)
 
 demo: $(STAMP)
+	$(VENV)/bin/flowslam demo
+
+kitti: $(STAMP)
 	$(VENV)/bin/flowslam run --frontend kiss-icp --backend odometry $(DEMO_SEQ)
 
 test: $(STAMP)

@@ -113,9 +113,18 @@ class Isam2Config(BaseModel):
     huber_k: float = Field(1.345, gt=0)
     """Huber kernel width of the odometry factors."""
     cauchy_k: float = Field(3.0, gt=0)
-    """Cauchy kernel width of the loop factors. A loop is drawn in from a drifted estimate
-    only if its disagreement is below about ``2 * cauchy_k`` times the odometry chain's
-    1-sigma between its two scans; a smaller k rejects more (true loops included)."""
+    """Cauchy kernel width of the loop factors, in units of the loop's *combined* 1-sigma
+    (see ``chain_aware_loop_kernel``)."""
+    chain_aware_loop_kernel: bool = True
+    """Widen each loop's Cauchy kernel by the odometry chain's own uncertainty between its
+    two scans: k = cauchy_k * sqrt(1 + var_chain / var_loop) (the larger of the rotation and
+    translation ratios; capped by ``max_loop_kernel_scale``). A true loop that disagrees by the drift the odometry covariances
+    allow keeps its weight; a loop far outside that envelope is still cut down. Off: the
+    kernel sees the loop's own covariance only, and true loops after long drift are ignored."""
+    max_loop_kernel_scale: float = Field(5.0, ge=1.0)
+    """Cap of that widening: a loop must still agree with the chain to within
+    ``cauchy_k * max_loop_kernel_scale`` loop sigmas to keep a useful weight, so a false loop
+    between far-apart scans (whose chain uncertainty is huge) stays cut down."""
     prior_rotation_sigma_deg: float = Field(1e-4, gt=0)
     prior_translation_sigma_m: float = Field(1e-4, gt=0)
     """Prior on the first pose (at the identity)."""
@@ -189,6 +198,16 @@ def _first_line(error: BaseException) -> str:
     return (str(error).strip().splitlines() or [type(error).__name__])[0]
 
 
+def _adjoint(T: np.ndarray) -> np.ndarray:
+    """(...,6,6) adjoints in GTSAM's [rot, trans] order: T Exp(xi) T^-1 = Exp(Ad(T) xi)."""
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    A = np.zeros(T.shape[:-2] + (6, 6))
+    A[..., :3, :3] = R
+    A[..., 3:, 3:] = R
+    A[..., 3:, :3] = geometry.hat(t) @ R
+    return A
+
+
 def _pose_error(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     """Translation (m) and rotation (deg) of ``inv(T_a) @ T_b``."""
     E = geometry.inv(T_a) @ T_b
@@ -224,6 +243,7 @@ class Isam2Backend:
         self._latest = gtsam.Pose3()
         self._latest_matrix = np.eye(4)
         self._odometry: list[np.ndarray] = []
+        self._odometry_cov: list[np.ndarray] = []
         self.loops: list[LoopRecord] = []
         """Every loop factor added, in order."""
         self.loops_ignored = 0
@@ -260,6 +280,7 @@ class Isam2Backend:
             values.insert(_key(index), gtsam.Pose3())
             self._update(graph, values)
             self._odometry.append(np.eye(4))
+            self._odometry_cov.append(np.zeros((6, 6)))
         else:
             if T_prev_curr is None:
                 raise ValueError(f"scan {index}: a relative motion is required after the first scan")
@@ -278,6 +299,7 @@ class Isam2Backend:
             except _Rejected as error:
                 self._repair_odometry(index, prev, measured, guess, str(error))
             self._odometry.append(self._odometry[-1] @ T)
+            self._odometry_cov.append(np.asarray(covariance, dtype=np.float64))
         self._indices.append(index)
         self._known.add(index)
         self._refresh_latest()
@@ -303,7 +325,11 @@ class Isam2Backend:
         innovation = _pose_error(self.estimate(i) @ T, self.estimate(j))
         latest_before = self._latest_matrix
         try:
-            noise = self._robust(self._cauchy, covariance)
+            kernel = self._cauchy
+            if self.config.chain_aware_loop_kernel:
+                scale = self._chain_kernel_scale(i, j, np.asarray(covariance, dtype=np.float64))
+                kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(self.config.cauchy_k * scale)
+            noise = self._robust(kernel, covariance)
             graph = gtsam.NonlinearFactorGraph()
             graph.add(gtsam.BetweenFactorPose3(_key(i), _key(j), gtsam.Pose3(T), noise))
             self._update(graph, gtsam.Values())
@@ -331,6 +357,27 @@ class Isam2Backend:
             i, j, frame, *innovation, *residual, *correction, iterations, record.seconds * 1e3,
         )
         return record
+
+    def chain_covariance(self, i: int, j: int) -> np.ndarray:
+        """6x6 covariance of the chained odometry ``T_i_j`` (first order, right perturbation):
+        sum over steps k of Ad(R_k^-1) C_k Ad(R_k^-1)^T, with R_k the motion from step k to j."""
+        pos = {index: n for n, index in enumerate(self._indices)}
+        a, b = sorted((pos[i], pos[j]))
+        if a == b:
+            return np.zeros((6, 6))
+        poses = np.asarray(self._odometry[a + 1 : b + 1])
+        covs = np.asarray(self._odometry_cov[a + 1 : b + 1])
+        R = geometry.inv(poses) @ poses[-1]  # R_k = inv(T_w_k) T_w_b
+        A = _adjoint(geometry.inv(R))
+        return np.einsum("kij,kjl,kml->im", A, covs, A)
+
+    def _chain_kernel_scale(self, i: int, j: int, loop_cov: np.ndarray) -> float:
+        chain = self.chain_covariance(i, j)
+        ratios = [
+            np.trace(chain[s, s]) / max(np.trace(loop_cov[s, s]), 1e-18)
+            for s in (slice(0, 3), slice(3, 6))
+        ]
+        return float(min(np.sqrt(1.0 + max(ratios)), self.config.max_loop_kernel_scale))
 
     def latest_pose(self) -> np.ndarray:
         """Current estimate of the newest scan's ``T_world_sensor`` (cached after each update)."""

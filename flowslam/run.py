@@ -20,6 +20,7 @@ from flowslam import __version__
 from flowslam.config import PipelineConfig
 from flowslam.datasets import open_dataset
 from flowslam.flow_odometry import summarize_fallbacks
+from flowslam.interfaces import Frontend
 from flowslam.loop_closure import make_loop_closer
 from flowslam.mapping import StaticMapBuilder
 from flowslam.moving_objects import MovingObjectsLog
@@ -88,6 +89,8 @@ def run_sequence(
     *,
     on_start: Callable[[int], None] | None = None,
     on_frame: Callable[[int, float], None] | None = None,
+    frontend: Frontend | None = None,
+    tag: str | None = None,
 ) -> RunOutcome:
     """Run ``config.frontend`` + ``config.backend`` on the sequence at ``path``.
 
@@ -96,6 +99,8 @@ def run_sequence(
     ``outcome.raise_for_error()`` to re-raise it). Errors before the first scan
     (a missing path, an unknown frontend) raise directly.
     ``on_start(n_frames)`` / ``on_frame(k, seconds)`` drive a progress display.
+    ``frontend`` overrides ``config.frontend`` with an instance (e.g. a replay of
+    recorded measurements); ``tag`` names the results folder.
     """
     dsc = config.dataset
     dataset = open_dataset(
@@ -104,10 +109,10 @@ def run_sequence(
         vertical_correction_deg=dsc.kitti_vertical_correction_deg,
     )
     frames = _frame_range(len(dataset), config)
-    frontend = make_frontend(config.frontend, config)
+    frontend = frontend or make_frontend(config.frontend, config)
     backend = make_backend(config.backend, config)
     run_dir = create_results_dir(
-        config.output_dir, f"{Path(path).name}_{config.frontend}_{config.backend}"
+        config.output_dir, tag or f"{Path(path).name}_{config.frontend}_{config.backend}"
     )
     log.info("%s -> %s", dataset.describe(), run_dir)
     sinks = _OutputSinks(config)

@@ -256,3 +256,33 @@ def test_kiss_icp_a_loam_equals_the_odometry_backend_on_real_kitti(kitti_extract
     outcome.raise_for_error()
     assert np.abs(outcome.result.poses - odo.poses).max() < 1e-6
     assert (outcome.run_dir / "trajectory_kitti.txt").exists()
+
+
+def test_chain_covariance_matches_gtsam_marginals():
+    """The propagated odometry covariance between two scans equals GTSAM's relative marginal."""
+    import gtsam
+
+    from flowslam import geometry
+
+    rng = np.random.default_rng(4)
+    backend = Isam2Backend(Isam2Config(variant="a-loam"))
+    backend.add_odometry(0, None, None)
+    covs = []
+    for k in range(1, 30):
+        step = geometry.exp_se3(np.r_[rng.normal(0, 0.05, 3), 1.0 + rng.normal(0, 0.1), rng.normal(0, 0.2, 2)])
+        L = rng.normal(size=(6, 6)) * 0.01
+        cov = L @ L.T + np.diag([1e-5] * 3 + [1e-3] * 3)
+        covs.append(cov)
+        backend.add_odometry(k, step, cov)
+    ours = backend.chain_covariance(5, 29)
+    # GTSAM: batch graph with a tight prior on scan 5; the marginal of scan 29 is the relative one
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    odo = backend.odometry_trajectory()
+    graph.add(gtsam.PriorFactorPose3(5, gtsam.Pose3(odo[5]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)))
+    for k in range(5, 29):
+        T = np.linalg.inv(odo[k]) @ odo[k + 1]
+        graph.add(gtsam.BetweenFactorPose3(k, k + 1, gtsam.Pose3(T), gtsam.noiseModel.Gaussian.Covariance(covs[k])))
+    for k in range(5, 30):
+        values.insert(k, gtsam.Pose3(odo[k]))
+    theirs = gtsam.Marginals(graph, values).marginalCovariance(29)
+    np.testing.assert_allclose(ours, theirs, rtol=1e-6, atol=1e-12)
