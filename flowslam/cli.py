@@ -102,6 +102,7 @@ def run(
     gt_topic: Optional[str] = typer.Option(None, "--gt-topic", help="ROS bags: Odometry/PoseStamped GT topic."),
     sequence_id: Optional[str] = typer.Option(None, "--sequence", help="KITTI sequence id (e.g. 00)."),
     poses: Optional[Path] = typer.Option(None, "--poses", help="Scan folders: GT poses file (KITTI or TUM)."),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="ssf: a weights file instead of the shipped one."),
     kitti_correction: Optional[float] = typer.Option(
         None, "--kitti-correction-deg", help="KITTI beam elevation correction (default 0.205; 0 = off)."),
     first: Optional[int] = typer.Option(None, "--first", help="First frame index."),
@@ -117,6 +118,7 @@ def run(
             frontend=frontend, backend=backend, output_dir=output_dir and str(output_dir),
             **{
                 "isam2.variant": variant,
+                "ssf.weights": weights and str(weights),
                 "dataset.format": fmt, "dataset.topic": topic, "dataset.gt_topic": gt_topic,
                 "dataset.sequence": sequence_id, "dataset.poses": poses and str(poses),
                 "dataset.kitti_vertical_correction_deg": kitti_correction,
@@ -275,6 +277,56 @@ def demo_command(
                 rows = run_demo(sequence, cfg, chosen, progress=lambda label, n: _progress_callbacks(bar, label))
         Console().print(demo_table(rows))
         typer.echo(f"sequence {sequence}; runs and plots in {demo_dir}; {time.perf_counter() - t0:.0f} s in all")
+
+
+@app.command("flow-eval")
+def flow_eval_command(
+    sequence: Path = typer.Argument(..., help="A sequence with GT flow (simulated, Argoverse 2 with flow labels)."),
+    frontend: str = typer.Option("ssf", "--frontend", "-f", help="Flow frontend to evaluate (ssf, gt-flow, gt)."),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="ssf: a weights file instead of the shipped one."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config."),
+    first: Optional[int] = typer.Option(None, "--first", help="First frame index."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", "-n", help="At most N frames."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the metrics as JSON."),
+):
+    """Scene-flow metrics of a frontend in pipeline conditions: EPE3D, Acc, 3-way EPE, IoU."""
+    with _user_errors():
+        from rich.console import Console
+        from rich.table import Table
+
+        from flowslam.config import load_config
+        from flowslam.datasets import open_dataset
+        from flowslam.errors import InputError
+        from flowslam.registry import make_frontend
+        from flowslam.sceneflow.flow_eval import evaluate_flow
+
+        cfg = load_config(config, frontend=frontend, **{
+            "ssf.weights": weights and str(weights), "dataset.first_frame": first, "dataset.max_frames": max_frames})
+        dataset = open_dataset(sequence)
+        if dataset.gt_poses is None:
+            raise InputError(sequence, "flow-eval needs GT poses and GT flow")
+        start = cfg.dataset.first_frame
+        stop = len(dataset) if cfg.dataset.max_frames is None else min(len(dataset), start + cfg.dataset.max_frames)
+        with _progress() as bar:
+            on_start, on_frame = _progress_callbacks(bar, f"flow-eval {frontend}")
+            on_start(stop - start)
+            result = evaluate_flow(dataset, make_frontend(frontend, cfg), range(start, stop), on_frame)
+        table = Table(title=f"scene flow of {frontend} on {sequence} ({result['pairs']} pairs)")
+        table.add_column("metric")
+        table.add_column(frontend, justify="right")
+        table.add_column("ego-gt reference", justify="right")
+        ref = result["ego-gt reference"]
+        for key in ["EPE3D", "AccStrict", "AccRelax", "Outliers", "EPE_3way", "EPE_FD", "EPE_FS", "EPE_BS", "DynamicIoU"]:
+            a, b = result["flow"].get(key), ref.get(key)
+            table.add_row(key, "-" if a is None else f"{a:.4f}", "-" if b is None else f"{b:.4f}")
+        e = result["ego_motion_error"]
+        if e["trans_m_mean"] is not None:
+            table.add_row("ego motion error (m / deg per step)", f"{e['trans_m_mean']:.4f} / {e['rot_deg_mean']:.4f}", "0")
+        Console().print(table)
+        if json_out is not None:
+            from flowslam.results import write_json
+
+            write_json(json_out, result)
 
 
 @app.command("config")

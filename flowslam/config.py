@@ -15,6 +15,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 from flowslam.errors import InputError
 from flowslam.backends.isam2 import Isam2Config
 from flowslam.flow_odometry import FlowOdometryConfig
+from flowslam.frontends.ssf import SsfConfig
 
 
 class _Strict(BaseModel):
@@ -74,6 +75,7 @@ class PipelineConfig(_Strict):
     kiss_icp: KissIcpConfig = KissIcpConfig()
     flow_odometry: FlowOdometryConfig = FlowOdometryConfig()
     isam2: Isam2Config = Isam2Config()
+    ssf: SsfConfig = SsfConfig()
 
 
 def load_config(path: Path | None = None, **overrides) -> PipelineConfig:

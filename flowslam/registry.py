@@ -24,6 +24,7 @@ _FRONTENDS: dict[str, Factory | str] = {
     "kiss-icp": "flowslam.frontends.kiss_icp:make_frontend",
     "gt": "flowslam.frontends.ground_truth:make_gt_frontend",
     "gt-flow": "flowslam.frontends.ground_truth:make_gt_flow_frontend",
+    "ssf": "flowslam.frontends.ssf:make_frontend",
 }
 _BACKENDS: dict[str, Factory | str] = {
     "odometry": "flowslam.backends.odometry:make_backend",

@@ -1,0 +1,118 @@
+"""Frontend ``ssf`` (first version): learned scene flow -> static mask -> flow-to-pose.
+
+Per scan ``k`` (k >= 1):
+
+1. The last ``T`` scans (oldest first; at the start the oldest available scan is
+   repeated) are moved into sensor frame ``k`` with the frontend's *own* estimates:
+   its chained odometry for the older scans and a constant-velocity prediction for
+   the newest step. No ground truth is read.
+2. ``SceneFlowNet`` predicts the residual flow and a dynamic logit for a sample of the
+   points of scan ``k-1``; the prior is added back and both are propagated to every
+   point of scan ``k-1`` (``flowslam.sceneflow.propagate``): full Argoverse-2-convention
+   flow (m, sensor frame k) and a static mask (dynamic probability < 0.5).
+3. ``FlowToPose`` registers the static flow pairs (IRLS / RANSAC) into the odometry
+   measurement ``T_prev_curr`` with its covariance (constant-velocity fallback when
+   degenerate).
+
+Per-point outputs (flow, static mask) refer to scan ``k-1``, as the interface says.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from flowslam import geometry
+from flowslam.datasets.frame import Frame
+from flowslam.flow_odometry import FlowOdometryConfig, FlowToPose
+from flowslam.interfaces import FrontendOutput
+
+
+class SsfConfig(BaseModel):
+    """Options of the ``ssf`` frontend."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    weights: Path | None = None
+    """Weights file; None = the weights shipped in the package (hash-checked)."""
+    max_points: int = 16384
+    """Points sampled per scan for the network (flow is propagated to all points)."""
+    dynamic_threshold: float = 0.5
+    """A point is dynamic when sigmoid(logit) exceeds this."""
+    device: str = "cpu"
+    num_threads: int | None = None
+
+
+class SsfFrontend:
+    name = "ssf"
+
+    def __init__(self, options: SsfConfig | None = None, flow_odometry: FlowOdometryConfig | None = None):
+        import torch
+
+        from flowslam.sceneflow.weights import build_model, load_weights, shipped_weights
+
+        self.options = options = options or SsfConfig()
+        if options.num_threads:
+            torch.set_num_threads(options.num_threads)
+        path = options.weights or shipped_weights()
+        payload = load_weights(path, require_hash=options.weights is None)
+        self.device = torch.device(options.device)
+        self.model = build_model(payload).to(self.device)
+        self.num_frames = self.model.config.num_frames
+        self.flow_to_pose = FlowToPose(flow_odometry)
+        self._frames: deque[Frame] = deque(maxlen=self.num_frames - 1)
+        self._poses: deque[np.ndarray] = deque(maxlen=self.num_frames - 1)  # own T_world_sensor estimates
+        self._last_motion = np.eye(4)
+
+    def _priors(self, T_world_new: np.ndarray) -> tuple[list[Frame], list[np.ndarray]]:
+        frames, poses = list(self._frames), list(self._poses)
+        while len(frames) < self.num_frames - 1:  # start of a sequence: repeat the oldest scan
+            frames.insert(0, frames[0])
+            poses.insert(0, poses[0])
+        T_new_world = geometry.inv(T_world_new)
+        return frames, [T_new_world @ T for T in poses] + [np.eye(4)]
+
+    def process(self, frame: Frame) -> FrontendOutput:
+        import torch
+
+        from flowslam.sceneflow.propagate import propagate
+        from flowslam.sceneflow.samples import frames_to_sample
+
+        if not self._frames:
+            self._frames.append(frame)
+            self._poses.append(np.eye(4))
+            return FrontendOutput(index=frame.index, T_prev_curr=None)
+        T_world_prev = self._poses[-1]
+        T_world_pred = T_world_prev @ self._last_motion  # constant velocity
+        frames, priors = self._priors(T_world_pred)
+        sample = frames_to_sample(frames + [frame], priors, self.options.max_points)
+        with torch.no_grad():
+            out = self.model({"points": [[torch.from_numpy(p).to(self.device) for p in sample.points]]})
+            residual = out["flow"].float()
+            logit = out["dynamic_logit"].float()
+            prev = frames[-1]
+            src_all = torch.from_numpy(prev.points).to(self.device)
+            values = propagate(
+                src_all.float(), torch.from_numpy(sample.source_index).to(self.device),
+                torch.cat([residual, logit[:, None]], dim=1),
+            ).cpu().numpy().astype(np.float64)
+        prior_flow = geometry.transform_points(sample.T_new_src, prev.points) - prev.points
+        flow = prior_flow + values[:, :3]
+        dynamic_prob = 1.0 / (1.0 + np.exp(-values[:, 3]))
+        static = dynamic_prob < self.options.dynamic_threshold
+        est = self.flow_to_pose.estimate(prev.points, flow, static_mask=static, dt=frame.timestamp - prev.timestamp)
+        self._last_motion = est.T_prev_curr
+        self._frames.append(frame)
+        self._poses.append(T_world_prev @ est.T_prev_curr)
+        stats = dict(est.stats, dynamic_points=int((~static).sum()))
+        return FrontendOutput(
+            index=frame.index, T_prev_curr=est.T_prev_curr, covariance=est.covariance,
+            points=prev.points, flow=flow, static_mask=static, stats=stats,
+        )
+
+
+def make_frontend(config) -> SsfFrontend:
+    return SsfFrontend(getattr(config, "ssf", None), getattr(config, "flow_odometry", None))
