@@ -329,6 +329,50 @@ def flow_eval_command(
             write_json(json_out, result)
 
 
+@app.command("train")
+def train_command(
+    data: list[Path] = typer.Argument(None, help="Training sequences with GT flow and poses (simulated, AV2)."),
+    val: Optional[list[Path]] = typer.Option(None, "--val", help="Held-out validation sequence (repeatable)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="TrainConfig JSON (options override it)."),
+    out_dir: Optional[Path] = typer.Option(None, "--out-dir", "-o", help="Checkpoints and history go here."),
+    preset: Optional[str] = typer.Option(None, "--preset", help="Model size: tiny (CPU) or full (GPU)."),
+    frames: Optional[int] = typer.Option(None, "--frames", help="Input frames per sample (5 default; 2 works)."),
+    max_points: Optional[int] = typer.Option(None, "--max-points", help="Points sampled per frame."),
+    epochs: Optional[int] = typer.Option(None, "--epochs"),
+    batch_size: Optional[int] = typer.Option(None, "--batch-size"),
+    lr: Optional[float] = typer.Option(None, "--lr"),
+    max_minutes: Optional[float] = typer.Option(None, "--max-minutes", help="Stop after this much wall time."),
+    seed: Optional[int] = typer.Option(None, "--seed"),
+    resume: Optional[Path] = typer.Option(None, "--resume", help="Continue from a checkpoint."),
+    export: Optional[Path] = typer.Option(None, "--export", help="Write the best checkpoint as a weights file."),
+    no_progress: bool = typer.Option(False, "--no-progress"),
+):
+    """Train the scene-flow network (multi-GPU/CPU: torchrun -m flowslam.sceneflow.train CONFIG.json)."""
+    with _user_errors():
+        import json as _json
+
+        from flowslam.errors import InputError
+        from flowslam.sceneflow.train import TrainConfig, export_weights, train
+
+        base = _json.loads(config.read_text()) if config is not None else {}
+        given = dict(data=data or None, val=val or None, out_dir=out_dir, model_preset=preset, num_frames=frames,
+                     max_points=max_points, epochs=epochs, batch_size=batch_size, lr=lr,
+                     max_minutes=max_minutes, seed=seed)
+        base.update({k: v for k, v in given.items() if v is not None})
+        try:
+            cfg = TrainConfig.model_validate(base)
+        except ValueError as e:
+            raise InputError(config, str(e).splitlines()[0]) from None
+        if not cfg.data:
+            raise InputError(None, "no training data: pass sequence folders (e.g. from `flowslam simulate`)")
+        result = train(cfg, resume=resume, progress=not no_progress)
+        last = result["history"][-1] if result["history"] else {}
+        typer.echo(f"checkpoints in {result['out_dir']}; last epoch: {last}")
+        if export is not None:
+            digest = export_weights(Path(result["out_dir"]) / "checkpoint_best.pt", export)
+            typer.echo(f"weights: {export} (sha256 {digest})")
+
+
 @app.command("config")
 def config_command(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="Show this file merged over the defaults."),
