@@ -198,16 +198,6 @@ def _first_line(error: BaseException) -> str:
     return (str(error).strip().splitlines() or [type(error).__name__])[0]
 
 
-def _adjoint(T: np.ndarray) -> np.ndarray:
-    """(...,6,6) adjoints in GTSAM's [rot, trans] order: T Exp(xi) T^-1 = Exp(Ad(T) xi)."""
-    R, t = T[..., :3, :3], T[..., :3, 3]
-    A = np.zeros(T.shape[:-2] + (6, 6))
-    A[..., :3, :3] = R
-    A[..., 3:, 3:] = R
-    A[..., 3:, :3] = geometry.hat(t) @ R
-    return A
-
-
 def _pose_error(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     """Translation (m) and rotation (deg) of ``inv(T_a) @ T_b``."""
     E = geometry.inv(T_a) @ T_b
@@ -368,7 +358,7 @@ class Isam2Backend:
         poses = np.asarray(self._odometry[a + 1 : b + 1])
         covs = np.asarray(self._odometry_cov[a + 1 : b + 1])
         R = geometry.inv(poses) @ poses[-1]  # R_k = inv(T_w_k) T_w_b
-        A = _adjoint(geometry.inv(R))
+        A = geometry.adjoint(geometry.inv(R))
         return np.einsum("kij,kjl,kml->im", A, covs, A)
 
     def _chain_kernel_scale(self, i: int, j: int, loop_cov: np.ndarray) -> float:

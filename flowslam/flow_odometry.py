@@ -117,7 +117,6 @@ __all__ = [
     "FlowPoseEstimate",
     "FlowToPose",
     "ConstantVelocityPredictor",
-    "adjoint",
     "inverse_covariance",
     "correspondence_condition",
     "geometry_condition",
@@ -209,21 +208,10 @@ class FlowPoseEstimate:
     stats: dict = field(default_factory=dict)
 
 
-def adjoint(T: np.ndarray) -> np.ndarray:
-    """GTSAM's 6x6 adjoint of a 4x4 transform in ``[rot, trans]`` order:
-    ``[[R, 0], [hat(t) R, R]]`` (so that ``T Exp(xi) T^-1 = Exp(Ad_T xi)``)."""
-    R, t = T[:3, :3], T[:3, 3]
-    A = np.zeros((6, 6))
-    A[:3, :3] = R
-    A[3:, 3:] = R
-    A[3:, :3] = geometry.hat(t) @ R
-    return A
-
-
 def inverse_covariance(T: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     """Covariance of ``inv(T)`` from the covariance of ``T`` (both right-perturbation,
     ``[rot, trans]``): ``Ad_T Sigma Ad_T^T`` (derivation in the module doc)."""
-    A = adjoint(T)
+    A = geometry.adjoint(T)
     C = A @ covariance @ A.T
     return 0.5 * (C + C.T)
 

@@ -35,6 +35,7 @@ __all__ = [
     "rotation_angle",
     "translation_norm",
     "hat",
+    "adjoint",
     "exp_se3",
     "log_se3",
     "from_quat_xyzw",
@@ -114,6 +115,18 @@ def hat(w: np.ndarray) -> np.ndarray:
     W[..., 1, 0], W[..., 1, 2] = w[..., 2], -w[..., 0]
     W[..., 2, 0], W[..., 2, 1] = -w[..., 1], w[..., 0]
     return W
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """GTSAM's 6x6 adjoint of one (4,4) or a stack (...,4,4) of transforms, ``[rot, trans]``
+    order: ``[[R, 0], [hat(t) R, R]]``, so that ``T Exp(xi) T^-1 = Exp(Ad(T) xi)``."""
+    T = np.asarray(T, dtype=np.float64)
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    A = np.zeros(T.shape[:-2] + (6, 6))
+    A[..., :3, :3] = R
+    A[..., 3:, 3:] = R
+    A[..., 3:, :3] = hat(t) @ R
+    return A
 
 
 def _left_jacobian_SO3(w: np.ndarray) -> np.ndarray:

@@ -42,3 +42,15 @@ def av2_log() -> Path:
 def kitti00_full_gt() -> Path:
     """The full official KITTI 00 GT trajectory (camera-0 frame, KITTI format)."""
     return _require("trajectories/kitti00_gt_poses.txt")
+
+
+@pytest.fixture
+def one_torch_thread():
+    """One intra-op torch thread for the test: on a loaded machine two OpenMP threads can wait
+    on each other for whole scheduler ticks at every small op, making test times unpredictable."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

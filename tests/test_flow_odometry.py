@@ -12,7 +12,6 @@ from flowslam import geometry
 from flowslam.flow_odometry import (
     FlowOdometryConfig,
     FlowToPose,
-    adjoint,
     correspondence_condition,
     geometry_condition,
     inverse_covariance,
@@ -204,7 +203,7 @@ def test_config_validation():
 def test_adjoint_matches_gtsam():
     gtsam = pytest.importorskip("gtsam")
     T = geometry.from_euler("zyx", [30.0, -10.0, 5.0], t=[1.0, -2.0, 0.5], degrees=True)
-    np.testing.assert_allclose(adjoint(T), gtsam.Pose3(T).AdjointMap(), atol=1e-12)
+    np.testing.assert_allclose(geometry.adjoint(T), gtsam.Pose3(T).AdjointMap(), atol=1e-12)
 
 
 def test_inverse_covariance_against_gtsam_sampling():
@@ -221,7 +220,7 @@ def test_inverse_covariance_against_gtsam_sampling():
     empirical = np.cov(eta.T)
     predicted = inverse_covariance(T.matrix(), Sigma)
     # the map is exactly linear (eta = -Ad_T xi), so only the sampling error remains
-    np.testing.assert_allclose(eta, -xi @ adjoint(T.matrix()).T, atol=1e-9)
+    np.testing.assert_allclose(eta, -xi @ geometry.adjoint(T.matrix()).T, atol=1e-9)
     scale = np.sqrt(np.outer(np.diag(predicted), np.diag(predicted)))
     assert np.max(np.abs(empirical - predicted) / scale) < 0.05
 

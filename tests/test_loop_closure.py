@@ -22,7 +22,6 @@ from flowslam.loop_closure.config import ScanContextConfig, VerificationConfig
 from flowslam.loop_closure.detector import ScanContextLoopCloser
 from flowslam.loop_closure.verification import (
     CompactCloud,
-    adjoint,
     downsample,
     open3d_information_to_covariance,
     verify,
@@ -166,7 +165,7 @@ def test_open3d_information_is_rotation_first_left_perturbation_and_converts_to_
     np.testing.assert_allclose(cov, 0.01 * np.linalg.inv(info_right), rtol=1e-8, atol=1e-14)
     # and the adjoint maps right to left perturbations: Exp(Ad xi) T == T Exp(xi)
     xi = np.array([0.01, -0.02, 0.03, 0.1, 0.2, -0.3])
-    np.testing.assert_allclose(geometry.exp_se3(adjoint(T) @ xi) @ T, T @ geometry.exp_se3(xi), atol=1e-12)
+    np.testing.assert_allclose(geometry.exp_se3(geometry.adjoint(T) @ xi) @ T, T @ geometry.exp_se3(xi), atol=1e-12)
 
 
 def test_compact_cloud_round_trip():

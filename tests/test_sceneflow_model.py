@@ -19,14 +19,7 @@ from flowslam.sceneflow.propagate import propagate, random_subsample
 from flowslam.sceneflow.voxelize import BEVGrid, PillarEncoder, index_points
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One intra-op thread: on a loaded machine two OpenMP threads can wait on each other for
-    whole scheduler ticks at every small op, which makes test times unpredictable."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 SMALL = dict(half_extent=12.8, voxel_size=0.4, pillar_channels=8, widths=[8, 8, 16, 16, 16], d_model=16,
              d_inner=8, d_state=4, d_offset=8, head_hidden=16, chunk_size=32)

@@ -10,14 +10,7 @@ import torch
 from flowslam.sceneflow.selective_scan import linear_scan, selective_scan, selective_scan_reference
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One intra-op thread: on a loaded machine two OpenMP threads can wait on each other for
-    whole scheduler ticks at every small op, which makes test times unpredictable."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _inputs(Bt: int, L: int, Dm: int, S: int, dtype=torch.float32, seed: int = 0, dt_scale: float = 1.0):

@@ -32,7 +32,6 @@ __all__ = [
     "Verification",
     "downsample",
     "verify",
-    "adjoint",
     "open3d_information_to_covariance",
     "fixed_covariance",
 ]
@@ -89,16 +88,6 @@ class Verification:
     """Why it was rejected (empty when accepted)."""
 
 
-def adjoint(T: np.ndarray) -> np.ndarray:
-    """6x6 adjoint of a pose in GTSAM's [omega, v] order: ``Exp(Ad(T) xi) T = T Exp(xi)``."""
-    R, t = T[:3, :3], T[:3, 3]
-    Ad = np.zeros((6, 6))
-    Ad[:3, :3] = R
-    Ad[3:, 3:] = R
-    Ad[3:, :3] = geometry.hat(t) @ R
-    return Ad
-
-
 def fixed_covariance(config: VerificationConfig) -> np.ndarray:
     """Diagonal 6x6 covariance [rot rad, trans m] from the configured sigmas."""
     r, t = np.deg2rad(config.rotation_sigma_deg), config.translation_sigma_m
@@ -114,7 +103,7 @@ def open3d_information_to_covariance(
     perturbation in the target frame); ``point_sigma_m`` is the per-axis noise of a
     correspondence (m), so ``Sigma_l = point_sigma^2 * inv(information)``.
     """
-    Ad_inv = np.linalg.inv(adjoint(T_target_source))
+    Ad_inv = np.linalg.inv(geometry.adjoint(T_target_source))
     cov_left = point_sigma_m**2 * np.linalg.inv(information)
     cov = Ad_inv @ cov_left @ Ad_inv.T
     return 0.5 * (cov + cov.T)
