@@ -7,6 +7,7 @@ exits with code 2; ``--debug`` shows the traceback instead.
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import time
 from contextlib import contextmanager
@@ -38,6 +39,9 @@ def _main(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Only warnings and errors."),
 ):
     _state["debug"] = debug
+    # Before torch loads OpenMP: spinning OpenMP threads turn a 0.1 s forward pass into
+    # seconds when the cores are shared (2-core machines); a user's own setting wins.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     from rich.logging import RichHandler
 
     level = logging.DEBUG if debug else logging.WARNING if quiet else logging.INFO

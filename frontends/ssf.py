@@ -61,6 +61,11 @@ class SsfFrontend:
         payload = load_weights(path, require_hash=options.weights is None)
         self.device = torch.device(options.device)
         self.model = build_model(payload).to(self.device)
+        if self.device.type == "cpu":
+            from flowslam.sceneflow.model import tune_cpu_allocator
+
+            self.model.fold_batchnorm()  # inference only: BatchNorm folded into the convolutions
+            tune_cpu_allocator()
         self.num_frames = self.model.config.num_frames
         self.flow_to_pose = FlowToPose(flow_odometry)
         self._frames: deque[Frame] = deque(maxlen=self.num_frames - 1)
