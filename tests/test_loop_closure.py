@@ -260,6 +260,27 @@ def test_detector_closes_loops_on_a_revisit_with_a_turned_sensor(kitti, referenc
     assert closer.memory_bytes() < 16 * 80_000  # compact clouds + descriptors
 
 
+def test_drift_gate_rejects_a_look_alike_place_far_away(kitti, reference):
+    """The same real scans seen again, but where the estimate says the car is 150 m away
+    after only ~25 m of travel: a look-alike place, not a loop. With the estimate at the
+    right place, the same revisit is accepted."""
+    def revisit(offset_m):
+        cfg = LoopClosureConfig(exclude_recent_frames=3, exclude_recent_m=4.0, cooldown_frames=0)
+        closer = ScanContextLoopCloser(cfg)
+        shift = geometry.make_T(t=[0.0, offset_m, 0.0])
+        loops = []
+        for k in range(0, 16, 2):
+            closer.add_scan(k, kitti[k].points, reference[k])
+        for n, k in enumerate(range(15, 0, -2)):
+            loops += closer.add_scan(100 + n, kitti[k].points, shift @ reference[k])
+        return loops, closer
+
+    far, closer = revisit(150.0)
+    assert far == [] and closer.stats.descriptor_hits == 0  # no candidate inside the gate
+    near, _ = revisit(0.0)
+    assert len(near) >= 3
+
+
 def test_make_loop_closer_follows_the_variant():
     from flowslam.backends.isam2 import Isam2Config
 

@@ -70,5 +70,12 @@ class LoopClosureConfig(_Strict):
     """... nor with scans less than this far back along the travelled path (m)."""
     distance_threshold: float = Field(0.2, gt=0, le=1)
     """Scan Context distance (cosine, 0..1) below which the best candidate is verified."""
+    gate_base_m: float = Field(5.0, ge=0)
+    """Spatial gate: a candidate is considered only if its current position estimate lies
+    within ``gate_base_m + gate_drift_fraction * (path travelled between the two scans)`` of
+    the current scan's, and the accepted loop may correct the estimate by no more than
+    that. True loops pass for odometry that drifts less than the fraction; look-alike
+    places far away (repetitive streets, a procedural town) do not."""
+    gate_drift_fraction: float = Field(0.03, ge=0)
     cooldown_frames: int = Field(5, ge=0)
     """After an accepted loop, skip detection for this many scans."""

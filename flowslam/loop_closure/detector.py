@@ -79,6 +79,7 @@ class ScanContextLoopCloser:
         self._poses: list[np.ndarray] = []
         self._clouds: list[CompactCloud] = []
         self._path_m = 0.0
+        self._path_at: list[float] = []  # path length (m) travelled up to each stored scan
         self._last_accepted_at = -(10**9)
         self.loops: list[LoopClosure] = []
         """Every accepted loop, in order."""
@@ -106,6 +107,7 @@ class ScanContextLoopCloser:
         self._indices.append(int(index))
         self._descriptors.append(desc)
         self._poses.append(T_world_sensor.copy())
+        self._path_at.append(self._path_m)
         self._clouds.append(CompactCloud(cloud))
         self._candidates.add(sc.ring_key(desc), self._path_m)
         self.stats.scans += 1
@@ -119,9 +121,19 @@ class ScanContextLoopCloser:
         self.stats.seconds_per_scan.append(time.perf_counter() - start)
         return loops
 
+    def _distance(self, a: int, b: int) -> float:
+        return float(np.linalg.norm(self._poses[a][:3, 3] - self._poses[b][:3, 3]))
+
+    def _within_gate(self, cand: int, position: int, metres: float) -> bool:
+        """``metres`` (a distance or a correction) is within the drift gate of the pair."""
+        c = self.config
+        travelled = self._path_at[position] - self._path_at[cand]
+        return metres <= c.gate_base_m + c.gate_drift_fraction * travelled
+
     def _detect(self, position: int, desc: np.ndarray, cloud: np.ndarray) -> LoopClosure | None:
         c = self.config
         found = self._candidates.query(sc.ring_key(desc), c.num_candidates)
+        found = [p for p in found if self._within_gate(int(p), position, self._distance(int(p), position))]
         if len(found) == 0:
             return None
         dists, shifts = sc.distances(desc, np.stack([self._descriptors[p] for p in found]))
@@ -145,6 +157,10 @@ class ScanContextLoopCloser:
         correction = geometry.inv(T_i_j_est) @ result.T_target_source
         correction_m = float(geometry.translation_norm(correction))
         correction_deg = float(np.rad2deg(geometry.rotation_angle(correction)))
+        if not self._within_gate(cand, position, correction_m):
+            self.stats.rejected += 1
+            log.debug("loop %d-%d rejected: correction %.1f m outside the drift gate", i, j, correction_m)
+            return None
         loop = LoopClosure(
             i=i,
             j=j,
