@@ -262,7 +262,7 @@ def demo_command(
         from rich.console import Console
 
         from flowslam.config import load_config
-        from flowslam.demo import demo_table, run_demo
+        from flowslam.demo import demo_failures, demo_table, run_demo
         from flowslam.registry import frontend_names
         from flowslam.results import create_results_dir
         from flowslam.simulation import ensure_demo_sequence
@@ -280,6 +280,8 @@ def demo_command(
             with _progress() as bar:
                 rows = run_demo(sequence, cfg, chosen, progress=lambda label, n: _progress_callbacks(bar, label))
         Console().print(demo_table(rows))
+        for line in demo_failures(rows):
+            typer.echo(f"not run: {line}", err=True)
         typer.echo(f"sequence {sequence}; runs and plots in {demo_dir}; {time.perf_counter() - t0:.0f} s in all")
 
 

@@ -115,13 +115,13 @@ def _fmt(value, scale=1.0, digits=3) -> str:
 
 
 def demo_table(rows: list[DemoRow]):
-    """A rich table: APE, RPE(1), KITTI drift, loops, time per combination."""
+    """A rich table: APE, RPE(1), KITTI drift, loops, time per combination (failures: see
+    ``demo_failures``)."""
     from rich.table import Table
 
     table = Table(title="flowslam demo: trajectory errors against the simulator's exact GT")
-    for col in ["frontend", "backend", "APE rmse [m]", "RPE(1) trans [cm]", "RPE(1) rot [deg]",
-                "drift [%]", "loops", "time [s]", "note"]:
-        table.add_column(col, justify="left" if col in ("frontend", "backend", "note") else "right")
+    for col in ["frontend", "backend", "APE m", "RPE1 cm", "RPE1 deg", "drift %", "loops", "s"]:
+        table.add_column(col, justify="left" if col in ("frontend", "backend") else "right", no_wrap=True)
     for r in rows:
         m = r.metrics or {}
         rpe = (m.get("rpe") or [{}])[0]
@@ -133,6 +133,10 @@ def demo_table(rows: list[DemoRow]):
             _fmt(m.get("kitti_drift", {}).get("t_err_percent"), 1, 2),
             str(r.loops) if r.error is None else "-",
             _fmt(r.seconds, 1, 1),
-            r.error or "",
         )
     return table
+
+
+def demo_failures(rows: list[DemoRow]) -> list[str]:
+    """One line per combination that could not run (printed under the table)."""
+    return [f"{r.frontend} + {r.backend}: {r.error}" for r in rows if r.error]

@@ -129,3 +129,13 @@ def test_ddp_two_gloo_processes(sim_seq, tmp_path):
     assert history[0]["world_size"] == 2 and np.isfinite(history[0]["train_loss"])
     # each rank saw half of the samples: 6 samples / (2 ranks x batch 2) -> 2 steps
     assert history[0]["step"] == 2
+
+
+def test_shipped_weights_load_and_fit_the_budget():
+    from flowslam.sceneflow.weights import build_model, shipped_weights
+
+    path = shipped_weights()
+    assert path.stat().st_size <= 15 * 2**20
+    payload = load_weights(path)  # hash-checked, weights_only
+    model = build_model(payload)
+    assert model.config.num_frames == 5 and model.count_parameters() > 100_000
