@@ -14,6 +14,10 @@ Also: chunked vs. sequential selective scan, and parameters / size of each prese
     python tools/bench_sceneflow.py [--threads 2] [--runs 9] [--preset tiny] [--no-tune-allocator]
 
 The machine's load average is printed: on a shared machine the timings are upper bounds.
+With two threads on a *loaded* machine, OpenMP's spinning threads wait a scheduler slice
+(~7 ms) at every parallel op and a forward pass can take seconds: run with
+``OMP_WAIT_POLICY=PASSIVE`` (or ``--threads 1``) there. The glibc allocator is tuned
+(``tune_cpu_allocator``) unless ``--no-tune-allocator``.
 """
 
 from __future__ import annotations

@@ -19,6 +19,10 @@ and a softmax over the branches weighs them; the Temporal Gated Block (TGB) comp
 a sigmoid gate from the fused features with a temporal kernel-3 convolution and
 multiplies it in; a 1x1 projection plus a (projected) residual gives the output.
 
+``separable=True`` (the CPU preset) factorises every STDCB: a pointwise conv, then
+depthwise spatial / temporal branches and gate (see ``STDCB``). ``fold_bn_into`` folds
+the eval-mode BatchNorms into the preceding layers for inference.
+
 U-Net: ``levels`` resolutions (stride 1, 2, 4, ...), encoder level i runs
 ``encoder_depths[i]`` STDCBs then a 2x2 stride-2 convolution down (per timestep, time
 is never pooled); the decoder goes up with 2x2 stride-2 transposed convolutions,
