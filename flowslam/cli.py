@@ -304,6 +304,7 @@ def flow_eval_command(
         from flowslam.datasets import open_dataset
         from flowslam.errors import InputError
         from flowslam.registry import make_frontend
+        from flowslam.run import frame_range
         from flowslam.sceneflow.flow_eval import evaluate_flow
 
         cfg = load_config(config, frontend=frontend, **{
@@ -311,12 +312,11 @@ def flow_eval_command(
         dataset = open_dataset(sequence)
         if dataset.gt_poses is None:
             raise InputError(sequence, "flow-eval needs GT poses and GT flow")
-        start = cfg.dataset.first_frame
-        stop = len(dataset) if cfg.dataset.max_frames is None else min(len(dataset), start + cfg.dataset.max_frames)
+        frames = frame_range(len(dataset), cfg)
         with _progress() as bar:
             on_start, on_frame = _progress_callbacks(bar, f"flow-eval {frontend}")
-            on_start(stop - start)
-            result = evaluate_flow(dataset, make_frontend(frontend, cfg), range(start, stop), on_frame)
+            on_start(len(frames))
+            result = evaluate_flow(dataset, make_frontend(frontend, cfg), frames, on_frame)
         table = Table(title=f"scene flow of {frontend} on {sequence} ({result['pairs']} pairs)")
         table.add_column("metric")
         table.add_column(frontend, justify="right")

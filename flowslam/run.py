@@ -45,7 +45,8 @@ class RunOutcome:
             raise self.result.error
 
 
-def _frame_range(n: int, config: PipelineConfig) -> range:
+def frame_range(n: int, config: PipelineConfig) -> range:
+    """Dataset indices a run processes: ``dataset.first_frame`` on, at most ``max_frames``."""
     first = config.dataset.first_frame
     stop = n if config.dataset.max_frames is None else min(n, first + config.dataset.max_frames)
     return range(first, stop)
@@ -108,7 +109,7 @@ def run_sequence(
         sequence=dsc.sequence, poses=dsc.poses,
         vertical_correction_deg=dsc.kitti_vertical_correction_deg,
     )
-    frames = _frame_range(len(dataset), config)
+    frames = frame_range(len(dataset), config)
     frontend = frontend or make_frontend(config.frontend, config)
     backend = make_backend(config.backend, config)
     run_dir = create_results_dir(

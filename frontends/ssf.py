@@ -83,6 +83,7 @@ class SsfFrontend:
     def process(self, frame: Frame) -> FrontendOutput:
         import torch
 
+        from flowslam.sceneflow.model import full_flow
         from flowslam.sceneflow.propagate import propagate
         from flowslam.sceneflow.samples import frames_to_sample
 
@@ -104,8 +105,8 @@ class SsfFrontend:
                 src_all.float(), torch.from_numpy(sample.source_index).to(self.device),
                 torch.cat([residual, logit[:, None]], dim=1),
             ).cpu().numpy().astype(np.float64)
-        prior_flow = geometry.transform_points(sample.T_new_src, prev.points) - prev.points
-        flow = prior_flow + values[:, :3]
+        compensated = geometry.transform_points(sample.T_new_src, prev.points)
+        flow = full_flow(prev.points, compensated, values[:, :3])
         dynamic_prob = 1.0 / (1.0 + np.exp(-values[:, 3]))
         static = dynamic_prob < self.options.dynamic_threshold
         est = self.flow_to_pose.estimate(prev.points, flow, static_mask=static, dt=frame.timestamp - prev.timestamp)

@@ -153,14 +153,13 @@ def compute_loss(out: dict, batch: dict, config: TrainConfig, device: torch.devi
 def evaluate_samples(model, samples: list[Sample], device: torch.device) -> dict:
     """Full-flow metrics (EPE3D, AccStrict, AccRelax, Dynamic IoU) over ``samples``."""
     from flowslam.sceneflow.metrics import acc_relax, acc_strict, dynamic_iou, epe3d
+    from flowslam.sceneflow.model import full_flow
 
     model.eval()
     preds, gts, dyn_pred, dyn_gt = [], [], [], []
     for s in samples:
         out = model({"points": [[torch.from_numpy(p).to(device) for p in s.points]]})
-        residual = out["flow"].float().cpu().numpy()
-        compensated = s.points[-2]
-        preds.append(compensated - s.source_points + residual)
+        preds.append(full_flow(s.source_points, s.points[-2], out["flow"].float().cpu().numpy()))
         gts.append(s.gt_flow)
         dyn_pred.append(out["dynamic_logit"].float().cpu().numpy() > 0)
         dyn_gt.append(s.dynamic)
