@@ -10,9 +10,18 @@ Per scan ``k`` (k >= 1):
    points of scan ``k-1``; the prior is added back and both are propagated to every
    point of scan ``k-1`` (``flowslam.sceneflow.propagate``): full Argoverse-2-convention
    flow (m, sensor frame k) and a static mask (dynamic probability < 0.5).
-3. ``FlowToPose`` registers the static flow pairs (IRLS / RANSAC) into the odometry
-   measurement ``T_prev_curr`` with its covariance (constant-velocity fallback when
-   degenerate).
+3. ``FlowToPose`` registers the static flow pairs (IRLS / RANSAC) into a first motion
+   estimate (constant-velocity fallback when degenerate).
+4. Test-time refinement (``refine``, on by default; ``flowslam.sceneflow.refine``): the
+   static flow is refined against the geometry of scan ``k`` by flow-guided
+   point-to-plane ICP, and ``FlowToPose`` turns the refined static flow into the
+   odometry measurement ``T_prev_curr`` and its covariance. The static points' output
+   flow is then the rigid flow of that measurement; dynamic points keep the network's
+   flow. With ``refine.enabled: false`` step 3 gives the measurement (network flow only).
+5. Objects (``objects``, on by default, needs step 4; ``flowslam.sceneflow.objects``):
+   candidate moving points are clustered and each object is registered to scan ``k``
+   (rigid ICP from the network's displacement); its points get that rigid flow and a
+   dynamic label from its speed relative to the ego motion.
 
 Per-point outputs (flow, static mask) refer to scan ``k-1``, as the interface says.
 """
@@ -29,6 +38,8 @@ from flowslam import geometry
 from flowslam.datasets.frame import Frame
 from flowslam.flow_odometry import FlowOdometryConfig, FlowToPose
 from flowslam.interfaces import FrontendOutput
+from flowslam.sceneflow.objects import ObjectRefinementConfig, refine_objects
+from flowslam.sceneflow.refine import FlowRefinementConfig, refine_static_flow
 
 
 class SsfConfig(BaseModel):
@@ -44,6 +55,10 @@ class SsfConfig(BaseModel):
     """A point is dynamic when sigmoid(logit) exceeds this."""
     device: str = "cpu"
     num_threads: int | None = None
+    refine: FlowRefinementConfig = FlowRefinementConfig()
+    """Test-time refinement of the static flow against the next scan (module doc, step 4)."""
+    objects: ObjectRefinementConfig = ObjectRefinementConfig()
+    """Test-time rigid refinement of the moving objects' flow (module doc, step 5)."""
 
 
 class SsfFrontend:
@@ -68,6 +83,9 @@ class SsfFrontend:
             tune_cpu_allocator()
         self.num_frames = self.model.config.num_frames
         self.flow_to_pose = FlowToPose(flow_odometry)
+        # step 3 when refining: only the ICP's start, so IRLS without the RANSAC rescue
+        start = (flow_odometry or FlowOdometryConfig()).model_copy(update={"ransac_below_inlier_ratio": 0.0})
+        self._network_pose = FlowToPose(start)
         self._frames: deque[Frame] = deque(maxlen=self.num_frames - 1)
         self._poses: deque[np.ndarray] = deque(maxlen=self.num_frames - 1)  # own T_world_sensor estimates
         self._last_motion = np.eye(4)
@@ -82,6 +100,7 @@ class SsfFrontend:
 
     def process(self, frame: Frame) -> FrontendOutput:
         import torch
+        from scipy.spatial import cKDTree
 
         from flowslam.sceneflow.model import full_flow
         from flowslam.sceneflow.propagate import propagate
@@ -109,11 +128,29 @@ class SsfFrontend:
         flow = full_flow(prev.points, compensated, values[:, :3])
         dynamic_prob = 1.0 / (1.0 + np.exp(-values[:, 3]))
         static = dynamic_prob < self.options.dynamic_threshold
-        est = self.flow_to_pose.estimate(prev.points, flow, static_mask=static, dt=frame.timestamp - prev.timestamp)
+        dt = frame.timestamp - prev.timestamp
+        refine_stats: dict = {}
+        if self.options.refine.enabled:
+            first = self._network_pose.estimate(prev.points, flow, static_mask=static, dt=dt)
+            refined = refine_static_flow(prev.points, flow, static, frame.points, first.T_curr_prev,
+                                         self.options.refine)
+            refine_stats = dict(refined.stats, refine_accepted=refined.accepted)
+        if self.options.refine.enabled and refined.accepted:
+            est = self.flow_to_pose.estimate(refined.points, refined.flow, dt=dt)
+            if self.options.objects.enabled:
+                objects = refine_objects(prev.points, flow, ~static, frame.points, est.T_curr_prev, dt,
+                                         self.options.objects, cKDTree(refined.target_points))
+                flow, static = objects.flow, ~objects.dynamic
+                refine_stats.update(objects.stats)
+            else:
+                flow = flow.copy()  # static points: the rigid flow of the measurement
+                flow[static] = geometry.transform_points(est.T_curr_prev, prev.points[static]) - prev.points[static]
+        else:
+            est = self.flow_to_pose.estimate(prev.points, flow, static_mask=static, dt=dt)
         self._last_motion = est.T_prev_curr
         self._frames.append(frame)
         self._poses.append(T_world_prev @ est.T_prev_curr)
-        stats = dict(est.stats, dynamic_points=int((~static).sum()))
+        stats = dict(est.stats, dynamic_points=int((~static).sum()), **refine_stats)
         return FrontendOutput(
             index=frame.index, T_prev_curr=est.T_prev_curr, covariance=est.covariance,
             points=prev.points, flow=flow, static_mask=static, stats=stats,

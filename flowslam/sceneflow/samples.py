@@ -41,6 +41,11 @@ class PriorNoise(BaseModel):
     """Older steps (odometry already estimated) get errors scaled by this."""
     p_no_prior: float = 0.1
     """Probability of feeding the raw scans (identity prior)."""
+    scale_exponent: float = 0.0
+    """Per sample, every error above is multiplied by ``u ** scale_exponent`` with ``u``
+    uniform in [0, 1]: 0 keeps the full-size errors, 2 draws a third of the size on
+    average, so that the network also learns to be precise when the prior is nearly
+    right (as it is in a second pass or on smooth driving)."""
 
 
 @dataclass
@@ -117,10 +122,11 @@ def noisy_priors(gt_poses: np.ndarray, noise: PriorNoise, rng: np.random.Generat
     if rng.uniform() < noise.p_no_prior:
         return [np.eye(4) for _ in range(n)]
     steps = [geometry.relative(gt_poses[t + 1], gt_poses[t]) for t in range(n - 1)]  # T_{t+1,t}
+    size = rng.uniform() ** noise.scale_exponent if noise.scale_exponent > 0 else 1.0
     priors = [np.eye(4)]
     T = np.eye(4)
     for t in range(n - 2, -1, -1):
-        scale = 1.0 if t == n - 2 else noise.older_step_fraction
+        scale = size * (1.0 if t == n - 2 else noise.older_step_fraction)
         T = T @ (_perturbation(noise, scale, rng) @ steps[t])
         priors.append(T.copy())
     return priors[::-1]

@@ -48,6 +48,9 @@ class TrainConfig(BaseModel):
     out_dir: Path = Path("runs/sceneflow")
     model_preset: str = "tiny"
     model_overrides: dict = Field(default_factory=dict)
+    init_weights: Path | None = None
+    """Start from these weights (a weights file or a checkpoint) instead of random ones;
+    the model config must match. Unlike ``resume``, optimiser and schedule start fresh."""
     num_frames: int = 5
     max_points: int = 16384
     """Points sampled per frame (the network sees at most this many)."""
@@ -194,6 +197,15 @@ def _checkpoint(path: Path, model, optimizer, scheduler, epoch: int, step: int, 
     os.replace(tmp, path)
 
 
+def _initial_state(path: Path, model_config: dict) -> dict:
+    """State dict of a weights file or a training checkpoint, checked against ``model_config``."""
+    payload = torch.load(path, map_location="cpu", weights_only=True)
+    state = payload.get("state_dict", payload.get("model"))
+    if state is None or payload.get("model_config") != model_config:
+        raise InputError(path, "is not a weights file or checkpoint of this model configuration")
+    return state
+
+
 def train(config: TrainConfig, resume: Path | None = None, progress: bool = True) -> dict:
     """Run a training; returns the final validation metrics and paths (rank 0)."""
     from flowslam.sceneflow.model import ModelConfig, SceneFlowNet
@@ -212,6 +224,8 @@ def train(config: TrainConfig, resume: Path | None = None, progress: bool = True
     model = SceneFlowNet(
         ModelConfig.preset(config.model_preset, num_frames=config.num_frames, **config.model_overrides)
     ).to(device)
+    if config.init_weights is not None:
+        model.load_state_dict(_initial_state(config.init_weights, model.config.model_dump()))
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     sampler = torch.utils.data.DistributedSampler(train_set, shuffle=True, seed=config.seed) if world > 1 else None
