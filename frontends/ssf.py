@@ -21,7 +21,9 @@ Per scan ``k`` (k >= 1):
 5. Objects (``objects``, on by default, needs step 4; ``flowslam.sceneflow.objects``):
    candidate moving points are clustered and each object is registered to scan ``k``
    (rigid ICP from the network's displacement); its points get that rigid flow and a
-   dynamic label from its speed relative to the ego motion.
+   dynamic label from its speed relative to the ego motion. The moving points found for
+   one pair are carried over to the next (``MoverPrior``, constant object velocity) as
+   extra candidates with a predicted flow, so an object found once stays tracked.
 
 Per-point outputs (flow, static mask) refer to scan ``k-1``, as the interface says.
 """
@@ -38,7 +40,7 @@ from flowslam import geometry
 from flowslam.datasets.frame import Frame
 from flowslam.flow_odometry import FlowOdometryConfig, FlowToPose
 from flowslam.interfaces import FrontendOutput
-from flowslam.sceneflow.objects import ObjectRefinementConfig, refine_objects
+from flowslam.sceneflow.objects import MoverPrior, ObjectRefinementConfig, refine_objects
 from flowslam.sceneflow.refine import FlowRefinementConfig, refine_static_flow
 
 
@@ -89,6 +91,7 @@ class SsfFrontend:
         self._frames: deque[Frame] = deque(maxlen=self.num_frames - 1)
         self._poses: deque[np.ndarray] = deque(maxlen=self.num_frames - 1)  # own T_world_sensor estimates
         self._last_motion = np.eye(4)
+        self._movers = MoverPrior(self.options.objects.track_radius_m)
 
     def _priors(self, T_world_new: np.ndarray) -> tuple[list[Frame], list[np.ndarray]]:
         frames, poses = list(self._frames), list(self._poses)
@@ -138,10 +141,15 @@ class SsfFrontend:
         if self.options.refine.enabled and refined.accepted:
             est = self.flow_to_pose.estimate(refined.points, refined.flow, dt=dt)
             if self.options.objects.enabled:
-                objects = refine_objects(prev.points, flow, ~static, frame.points, est.T_curr_prev, dt,
+                dynamic = ~static
+                tracked, tracked_flow = self._movers.predict(prev.points, est.T_curr_prev)
+                flow = np.where(tracked[:, None], tracked_flow, flow)  # last pair's movers, moved on
+                dynamic |= tracked
+                objects = refine_objects(prev.points, flow, dynamic, frame.points, est.T_curr_prev, dt,
                                          self.options.objects, cKDTree(refined.target_points))
                 flow, static = objects.flow, ~objects.dynamic
-                refine_stats.update(objects.stats)
+                self._movers.update(prev.points, flow, objects.dynamic, est.T_curr_prev)
+                refine_stats.update(objects.stats, tracked_candidates=int(tracked.sum()))
             else:
                 flow = flow.copy()  # static points: the rigid flow of the measurement
                 flow[static] = geometry.transform_points(est.T_curr_prev, prev.points[static]) - prev.points[static]

@@ -7,7 +7,7 @@ import pytest
 from flowslam import geometry
 from flowslam.datasets import open_dataset
 from flowslam.flow_odometry import FlowToPose
-from flowslam.sceneflow.objects import ObjectRefinementConfig, bev_clusters, refine_objects
+from flowslam.sceneflow.objects import MoverPrior, ObjectRefinementConfig, bev_clusters, refine_objects
 from flowslam.sceneflow.refine import FlowRefinementConfig, refine_static_flow
 from flowslam.simulation.labels import CLASS_NAMES
 from flowslam.trajectory import read_trajectory
@@ -108,3 +108,23 @@ def test_object_refinement_fixes_wrong_object_flow_and_false_movers(sim_pair):
     assert not result.dynamic[patch].any() and err[patch].max() < 1e-6  # ego-rigid flow again
     static = ~result.dynamic & ~dyn_gt
     assert err[static].max() < 1e-6
+
+
+def test_mover_prior_carries_moving_points_to_the_next_pair(tmp_path):
+    from flowslam.simulation import simulate
+
+    simulate(tmp_path / "dt", preset="dt", frames=4, seed=21, sensor="vlp32c")
+    ds = open_dataset(tmp_path / "dt")
+    a, b = ds[1], ds[2]  # pairs (1, 2) then (2, 3)
+    prior = MoverPrior(0.15)
+    mask, _ = prior.predict(b.points, np.eye(4))
+    assert not mask.any()  # nothing recorded yet
+    dyn = a.gt_dynamic.astype(bool)
+    prior.update(a.points, a.gt_flow, dyn, geometry.relative(b.gt_pose, a.gt_pose))
+    T_next = geometry.relative(ds[3].gt_pose, b.gt_pose)
+    mask, flow = prior.predict(b.points, T_next)
+    dyn_b = b.gt_dynamic.astype(bool)
+    assert mask.sum() > 0.3 * dyn_b.sum() and dyn_b[mask].mean() > 0.9  # mostly the movers, many of them
+    # constant velocity over one scan interval: the predicted flow is close to the truth
+    assert np.median(np.linalg.norm(flow[mask] - b.gt_flow[mask], axis=1)) < 0.1
+    assert not flow[~mask].any()

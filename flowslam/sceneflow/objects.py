@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-__all__ = ["ObjectRefinementConfig", "ObjectRefinement", "bev_clusters", "refine_objects"]
+__all__ = ["ObjectRefinementConfig", "ObjectRefinement", "MoverPrior", "bev_clusters", "refine_objects"]
 
 
 class ObjectRefinementConfig(BaseModel):
@@ -68,6 +68,9 @@ class ObjectRefinementConfig(BaseModel):
     """An object is static when the ego motion's fitness is within this of its own ICP's ..."""
     static_rmse_ratio: float = Field(1.2, ge=1)
     """... and its inlier RMSE at most this times the ICP's (+ 5 mm)."""
+    track_radius_m: float = Field(0.15, ge=0)
+    """Points of the next scan this close to a mover's landing spot become candidates
+    (``MoverPrior``; 0: no carry-over)."""
     dynamic_speed_mps: float = Field(0.5, ge=0)
     """Objects moving faster than this (relative to the ego-motion flow) are dynamic."""
 
@@ -230,3 +233,44 @@ def refine_objects(
         "relabelled_static": int(on_surface.sum()),
     }
     return ObjectRefinement(flow, dynamic, instance, objects, stats)
+
+
+class MoverPrior:
+    """Carries the moving points of one scan pair over to the next (constant object velocity).
+
+    After pair (k-1, k): the landing spots ``p + f`` (sensor frame k) of the points found
+    dynamic, and each one's own motion ``m = p + f - T_{k,k-1} p`` (frame k, metres per
+    scan interval). For pair (k, k+1) the points of scan k within ``radius_m`` of a
+    landing spot become dynamic candidates with the predicted flow
+    ``T_{k+1,k} p - p + R_{k+1,k} m`` (the ICP's start), so that an object found once
+    keeps being refined even where the network misses it.
+    """
+
+    def __init__(self, radius_m: float = 0.15):
+        self.radius_m = radius_m
+        self._landing: np.ndarray | None = None
+        self._motion: np.ndarray | None = None
+
+    def update(self, source: np.ndarray, flow: np.ndarray, dynamic: np.ndarray, T_ego: np.ndarray) -> None:
+        """Record pair (k-1, k): source points (frame k-1), flow, labels, ``T_ego`` = T_{k,k-1}."""
+        p = source[dynamic]
+        self._landing = p + flow[dynamic]
+        self._motion = self._landing - (p @ T_ego[:3, :3].T + T_ego[:3, 3])
+
+    def predict(self, points: np.ndarray, T_ego: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) bool candidates among ``points`` (scan k, frame k) and their (N,3) predicted
+        flow (rows of non-candidates are zero), given ``T_ego`` = T_{k+1,k}."""
+        from scipy.spatial import cKDTree
+
+        mask = np.zeros(len(points), dtype=bool)
+        flow = np.zeros((len(points), 3))
+        if self._landing is None or len(self._landing) == 0:
+            return mask, flow
+        dist, j = cKDTree(self._landing).query(points, distance_upper_bound=self.radius_m)
+        mask = np.isfinite(dist)
+        p = points[mask]
+        flow[mask] = p @ T_ego[:3, :3].T + T_ego[:3, 3] - p + self._motion[j[mask]] @ T_ego[:3, :3].T
+        return mask, flow
+
+    def reset(self) -> None:
+        self._landing = self._motion = None
