@@ -64,6 +64,9 @@ class ObjectRefinementConfig(BaseModel):
     min_fitness: float = Field(0.6, ge=0, le=1)
     """Share of the object's points on the target surface after its ICP."""
     max_rmse_m: float = Field(0.12, gt=0)
+    max_correction_m: float = Field(1.0, gt=0)
+    """Objects whose ICP moved their centroid farther than this from the start are
+    rejected: sparse clusters can lock onto a shifted copy of the ring pattern."""
     static_preference: float = Field(0.03, ge=0, le=1)
     """An object is static when the ego motion's fitness is within this of its own ICP's ..."""
     static_rmse_ratio: float = Field(1.2, ge=1)
@@ -200,13 +203,16 @@ def refine_objects(
         objects.append(record)
         if len(tgt) < c.min_points:
             continue
+        T_start = T
         T, _, t_cloud = _register(p, tgt, T, c)
         t_cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=c.normal_radius_m, max_nn=20))
         surface = (cKDTree(tgt), tgt, np.asarray(t_cloud.normals), c)
         fitness, rmse = _score(p, T, *surface)
         static_fitness, static_rmse = _score(p, T_ego, *surface)
         record.update(fitness=fitness, rmse_m=rmse, static_fitness=static_fitness, static_rmse_m=static_rmse)
-        if fitness < c.min_fitness or rmse > c.max_rmse_m:
+        moved_by = float(np.linalg.norm(T[:3, 3] + T[:3, :3] @ p.mean(axis=0) - T_start[:3, 3] - R @ p.mean(axis=0)))
+        record["icp_correction_m"] = moved_by
+        if fitness < c.min_fitness or rmse > c.max_rmse_m or moved_by > c.max_correction_m:
             continue
         if static_fitness >= fitness - c.static_preference and static_rmse <= c.static_rmse_ratio * rmse + 0.005:
             T = T_ego  # the ego motion explains the object as well as its own motion
