@@ -59,6 +59,9 @@ class SsfConfig(BaseModel):
     num_threads: int | None = None
     refine: FlowRefinementConfig = FlowRefinementConfig()
     """Test-time refinement of the static flow against the next scan (module doc, step 4)."""
+    second_pass: bool = False
+    """Run the network a second time with the refined ego motion as its prior (step 4b):
+    a nearly right prior leaves only the movers' own motion to predict."""
     objects: ObjectRefinementConfig = ObjectRefinementConfig()
     """Test-time rigid refinement of the moving objects' flow (module doc, step 5)."""
 
@@ -101,35 +104,38 @@ class SsfFrontend:
         T_new_world = geometry.inv(T_world_new)
         return frames, [T_new_world @ T for T in poses] + [np.eye(4)]
 
-    def process(self, frame: Frame) -> FrontendOutput:
+    def _predict(self, frame: Frame, T_world_new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Network flow (full, AV2 convention, frame of ``frame``) and dynamic probability of
+        every point of the previous scan, with ``T_world_new`` the guess of the new pose."""
         import torch
-        from scipy.spatial import cKDTree
 
         from flowslam.sceneflow.model import full_flow
         from flowslam.sceneflow.propagate import propagate
         from flowslam.sceneflow.samples import frames_to_sample
+
+        frames, priors = self._priors(T_world_new)
+        sample = frames_to_sample(frames + [frame], priors, self.options.max_points)
+        prev = frames[-1]
+        with torch.no_grad():
+            out = self.model({"points": [[torch.from_numpy(p).to(self.device) for p in sample.points]]})
+            values = propagate(
+                torch.from_numpy(prev.points).to(self.device).float(),
+                torch.from_numpy(sample.source_index).to(self.device),
+                torch.cat([out["flow"].float(), out["dynamic_logit"].float()[:, None]], dim=1),
+            ).cpu().numpy().astype(np.float64)
+        compensated = geometry.transform_points(sample.T_new_src, prev.points)
+        return full_flow(prev.points, compensated, values[:, :3]), 1.0 / (1.0 + np.exp(-values[:, 3]))
+
+    def process(self, frame: Frame) -> FrontendOutput:
+        from scipy.spatial import cKDTree
 
         if not self._frames:
             self._frames.append(frame)
             self._poses.append(np.eye(4))
             return FrontendOutput(index=frame.index, T_prev_curr=None)
         T_world_prev = self._poses[-1]
-        T_world_pred = T_world_prev @ self._last_motion  # constant velocity
-        frames, priors = self._priors(T_world_pred)
-        sample = frames_to_sample(frames + [frame], priors, self.options.max_points)
-        with torch.no_grad():
-            out = self.model({"points": [[torch.from_numpy(p).to(self.device) for p in sample.points]]})
-            residual = out["flow"].float()
-            logit = out["dynamic_logit"].float()
-            prev = frames[-1]
-            src_all = torch.from_numpy(prev.points).to(self.device)
-            values = propagate(
-                src_all.float(), torch.from_numpy(sample.source_index).to(self.device),
-                torch.cat([residual, logit[:, None]], dim=1),
-            ).cpu().numpy().astype(np.float64)
-        compensated = geometry.transform_points(sample.T_new_src, prev.points)
-        flow = full_flow(prev.points, compensated, values[:, :3])
-        dynamic_prob = 1.0 / (1.0 + np.exp(-values[:, 3]))
+        prev = self._frames[-1]
+        flow, dynamic_prob = self._predict(frame, T_world_prev @ self._last_motion)  # constant velocity
         static = dynamic_prob < self.options.dynamic_threshold
         dt = frame.timestamp - prev.timestamp
         refine_stats: dict = {}
@@ -140,6 +146,9 @@ class SsfFrontend:
             refine_stats = dict(refined.stats, refine_accepted=refined.accepted)
         if self.options.refine.enabled and refined.accepted:
             est = self.flow_to_pose.estimate(refined.points, refined.flow, dt=dt)
+            if self.options.second_pass:  # the network again, now with the refined ego motion
+                flow, dynamic_prob = self._predict(frame, T_world_prev @ est.T_prev_curr)
+                static = dynamic_prob < self.options.dynamic_threshold
             if self.options.objects.enabled:
                 dynamic = ~static
                 tracked, tracked_flow = self._movers.predict(prev.points, est.T_curr_prev)

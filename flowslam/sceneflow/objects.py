@@ -119,7 +119,7 @@ def _candidates(source, flow, dynamic, target_tree, T_ego, c: ObjectRefinementCo
 
 
 def _register(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, c: ObjectRefinementConfig):
-    """Point-to-point ICP of an object's points onto the target box; returns (T, source, target clouds).
+    """Point-to-point ICP of an object's points onto the target box; returns T.
 
     Point-to-point, not point-to-plane: normals of a few hundred sparse ring points are
     unreliable (measured: point-to-plane diverged on several simulated objects)."""
@@ -132,19 +132,37 @@ def _register(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, c: ObjectRefineme
     for max_dist in c.correspondence_m:
         T = np.asarray(reg.registration_icp(s, t, max_dist, T, reg.TransformationEstimationPointToPoint(),
                                             criteria).transformation).copy()
-    return T, s, t
+    return T
 
 
-def _score(src: np.ndarray, T: np.ndarray, tree, tgt: np.ndarray, normals: np.ndarray, c: ObjectRefinementConfig):
+def _normals_at(tree, tgt: np.ndarray, idx: np.ndarray, radius: float, k: int = 20) -> np.ndarray:
+    """(len(idx),3) unit normals of target points ``idx``: smallest principal axis of their
+    (at most ``k``) neighbours within ``radius`` (a point with < 3 neighbours gets NaN)."""
+    dist, nb = tree.query(tgt[idx], k=min(k, len(tgt)), distance_upper_bound=radius)
+    dist, nb = dist.reshape(len(idx), -1), nb.reshape(len(idx), -1)
+    valid = np.isfinite(dist)
+    pts = tgt[np.where(valid, nb, 0)] * valid[..., None]
+    n = valid.sum(axis=1).astype(np.float64)
+    mean = pts.sum(axis=1) / n[:, None]
+    cov = np.einsum("mki,mkj->mij", pts, pts) / n[:, None, None] - np.einsum("mi,mj->mij", mean, mean)
+    normals = np.linalg.eigh(cov)[1][:, :, 0]
+    normals[n < 3] = np.nan
+    return normals
+
+
+def _score(src: np.ndarray, T: np.ndarray, tree, tgt: np.ndarray, c: ObjectRefinementConfig):
     """(fitness, RMSE) of ``T src`` against the target surface: a point is an inlier when its
     nearest target point is within ``score_distance_m`` and it lies within ``score_plane_m``
     of that point's tangent plane; RMSE of the inliers' plane distances (m). Plane, not
     point, distances: a static surface seen by other rings in scan k is still a surface."""
     x = src @ T[:3, :3].T + T[:3, 3]
     dist, j = tree.query(x, distance_upper_bound=c.score_distance_m)
-    ok = np.isfinite(dist)
-    plane = np.abs(np.einsum("ij,ij->i", x[ok] - tgt[j[ok]], normals[j[ok]]))
-    inlier = plane < c.score_plane_m
+    ok = np.flatnonzero(np.isfinite(dist))
+    if ok.size == 0:
+        return 0.0, float("inf")
+    normals = _normals_at(tree, tgt, j[ok], c.normal_radius_m)
+    plane = np.abs(np.einsum("ij,ij->i", x[ok] - tgt[j[ok]], normals))
+    inlier = plane < c.score_plane_m  # NaN normals compare False
     if not inlier.any():
         return 0.0, float("inf")
     return float(inlier.sum()) / len(src), float(np.sqrt(np.mean(plane[inlier] ** 2)))
@@ -168,7 +186,6 @@ def refine_objects(
     registered objects their own rigid flow, other dynamic points the network's flow. ``target_tree``
     may be a ``scipy.spatial.cKDTree`` over (a downsampling of) ``target``.
     """
-    import open3d as o3d
     from scipy.spatial import cKDTree
 
     c = config or ObjectRefinementConfig()
@@ -185,8 +202,10 @@ def refine_objects(
     instance = np.full(len(source), -1, dtype=np.int64)
     near_target = target[np.hypot(target[:, 0], target[:, 1]) < c.max_range_m + c.margin_m + 5.0]
     near_target = near_target[np.argsort(near_target[:, 0], kind="stable")]  # x-sorted: boxes by bisection
+    order = np.argsort(labels, kind="stable")  # candidates grouped by cluster
+    starts = np.concatenate([[0], np.cumsum(counts)])
     for label in np.flatnonzero(counts >= c.min_points):
-        idx = cand[labels == label]
+        idx = cand[order[starts[label]:starts[label + 1]]]
         p = source[idx]
         T = np.eye(4)
         T[:3, :3] = R
@@ -204,11 +223,10 @@ def refine_objects(
         if len(tgt) < c.min_points:
             continue
         T_start = T
-        T, _, t_cloud = _register(p, tgt, T, c)
-        t_cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=c.normal_radius_m, max_nn=20))
-        surface = (cKDTree(tgt), tgt, np.asarray(t_cloud.normals), c)
-        fitness, rmse = _score(p, T, *surface)
-        static_fitness, static_rmse = _score(p, T_ego, *surface)
+        T = _register(p, tgt, T, c)
+        tree = cKDTree(tgt)
+        fitness, rmse = _score(p, T, tree, tgt, c)
+        static_fitness, static_rmse = _score(p, T_ego, tree, tgt, c)
         record.update(fitness=fitness, rmse_m=rmse, static_fitness=static_fitness, static_rmse_m=static_rmse)
         moved_by = float(np.linalg.norm(T[:3, 3] + T[:3, :3] @ p.mean(axis=0) - T_start[:3, 3] - R @ p.mean(axis=0)))
         record["icp_correction_m"] = moved_by
@@ -272,8 +290,12 @@ class MoverPrior:
         flow = np.zeros((len(points), 3))
         if self._landing is None or len(self._landing) == 0:
             return mask, flow
-        dist, j = cKDTree(self._landing).query(points, distance_upper_bound=self.radius_m)
-        mask = np.isfinite(dist)
+        lo, hi = self._landing.min(axis=0) - self.radius_m, self._landing.max(axis=0) + self.radius_m
+        inside = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
+        dist, j_in = cKDTree(self._landing).query(points[inside], distance_upper_bound=self.radius_m)
+        mask[inside] = np.isfinite(dist)
+        j = np.zeros(len(points), dtype=np.int64)
+        j[inside] = np.minimum(j_in, len(self._landing) - 1)
         p = points[mask]
         flow[mask] = p @ T_ego[:3, :3].T + T_ego[:3, 3] - p + self._motion[j[mask]] @ T_ego[:3, :3].T
         return mask, flow
