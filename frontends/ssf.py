@@ -30,6 +30,7 @@ Per-point outputs (flow, static mask) refer to scan ``k-1``, as the interface sa
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from pathlib import Path
 
@@ -64,6 +65,19 @@ class SsfConfig(BaseModel):
     a nearly right prior leaves only the movers' own motion to predict."""
     objects: ObjectRefinementConfig = ObjectRefinementConfig()
     """Test-time rigid refinement of the moving objects' flow (module doc, step 5)."""
+
+
+class _StageClock:
+    """Wall time of consecutive stages (ms), for ``FrontendOutput.stats["stage_ms"]``."""
+
+    def __init__(self):
+        self.laps: dict[str, float] = {}
+        self._t = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.laps[name] = self.laps.get(name, 0.0) + 1e3 * (now - self._t)
+        self._t = now
 
 
 class SsfFrontend:
@@ -135,20 +149,26 @@ class SsfFrontend:
             return FrontendOutput(index=frame.index, T_prev_curr=None)
         T_world_prev = self._poses[-1]
         prev = self._frames[-1]
+        clock = _StageClock()
         flow, dynamic_prob = self._predict(frame, T_world_prev @ self._last_motion)  # constant velocity
         static = dynamic_prob < self.options.dynamic_threshold
+        clock.lap("network")
         dt = frame.timestamp - prev.timestamp
         refine_stats: dict = {}
         if self.options.refine.enabled:
             first = self._network_pose.estimate(prev.points, flow, static_mask=static, dt=dt)
+            clock.lap("network_pose")
             refined = refine_static_flow(prev.points, flow, static, frame.points, first.T_curr_prev,
                                          self.options.refine)
             refine_stats = dict(refined.stats, refine_accepted=refined.accepted)
+            clock.lap("refine")
         if self.options.refine.enabled and refined.accepted:
             est = self.flow_to_pose.estimate(refined.points, refined.flow, dt=dt)
+            clock.lap("flow_to_pose")
             if self.options.second_pass:  # the network again, now with the refined ego motion
                 flow, dynamic_prob = self._predict(frame, T_world_prev @ est.T_prev_curr)
                 static = dynamic_prob < self.options.dynamic_threshold
+                clock.lap("network_second_pass")
             if self.options.objects.enabled:
                 dynamic = ~static
                 tracked, tracked_flow = self._movers.predict(prev.points, est.T_curr_prev)
@@ -162,12 +182,14 @@ class SsfFrontend:
             else:
                 flow = flow.copy()  # static points: the rigid flow of the measurement
                 flow[static] = geometry.transform_points(est.T_curr_prev, prev.points[static]) - prev.points[static]
+            clock.lap("objects" if self.options.objects.enabled else "static_flow")
         else:
             est = self.flow_to_pose.estimate(prev.points, flow, static_mask=static, dt=dt)
+            clock.lap("flow_to_pose")
         self._last_motion = est.T_prev_curr
         self._frames.append(frame)
         self._poses.append(T_world_prev @ est.T_prev_curr)
-        stats = dict(est.stats, dynamic_points=int((~static).sum()), **refine_stats)
+        stats = dict(est.stats, dynamic_points=int((~static).sum()), **refine_stats, stage_ms=clock.laps)
         return FrontendOutput(
             index=frame.index, T_prev_curr=est.T_prev_curr, covariance=est.covariance,
             points=prev.points, flow=flow, static_mask=static, stats=stats,

@@ -52,7 +52,7 @@ class FlowRefinementConfig(BaseModel):
     correspondence_m: list[float] = Field(default_factory=lambda: [1.0, 0.3])
     """ICP stages, coarse to fine: largest correspondence distance per stage."""
     max_iterations: int = Field(30, ge=1)
-    max_source_points: int = Field(8000, ge=10)
+    max_source_points: int = Field(4000, ge=10)
     """At most this many downsampled static source points (a seeded random subset)."""
     """ICP iterations per stage."""
     normal_radius_m: float = Field(1.2, gt=0)

@@ -1,0 +1,86 @@
+"""Benchmark of the whole ``ssf`` frontend per frame, stage by stage (not a test).
+
+Runs ``SsfFrontend`` (shipped weights, BatchNorms folded) over a sequence -- by default
+the real KITTI 00 frames 0-15 in ``../shared/data`` -- ``--runs`` times, and reports the
+median wall time per frame of each stage (``FrontendOutput.stats["stage_ms"]``: network
+forward + propagation, network flow-to-pose, static refinement, flow-to-pose, objects)
+and of the whole ``process`` call, plus the frame rate it allows. Three configurations
+run in the same process, one after the other, so that they share the machine's load:
+
+- ``network only``: ``refine.enabled: false`` (flow-to-pose on the network's flow);
+- ``refine``: static refinement, no objects;
+- ``full`` (the default configuration): refinement and objects.
+
+    python tools/bench_ssf_pipeline.py [SEQUENCE] [--runs 3] [--threads 2] [--frames 16]
+
+The machine's load average is printed: on a shared machine the timings are upper bounds.
+Run with ``OMP_WAIT_POLICY=PASSIVE`` on a loaded machine (see ``bench_sceneflow.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+
+DATA = Path(os.environ.get("FLOWSLAM_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+
+CONFIGS = {
+    "network only": {"refine": {"enabled": False}},
+    "refine": {"objects": {"enabled": False}},
+    "full": {},
+}
+
+
+def run_once(frames, options: dict, threads: int) -> tuple[list[float], dict[str, list[float]]]:
+    """Per-frame wall times (ms) of ``process`` and of each stage, frames 1.. of one pass."""
+    from flowslam.frontends.ssf import SsfConfig, SsfFrontend
+
+    frontend = SsfFrontend(SsfConfig(num_threads=threads, **options))
+    totals, stages = [], {}
+    for k, frame in enumerate(frames):
+        t0 = time.perf_counter()
+        out = frontend.process(frame)
+        if k == 0:
+            continue
+        totals.append(1e3 * (time.perf_counter() - t0))
+        for name, ms in out.stats.get("stage_ms", {}).items():
+            stages.setdefault(name, []).append(ms)
+    return totals, stages
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("sequence", nargs="?", type=Path, default=DATA / "kitti-odometry-00-first16")
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--frames", type=int, default=16)
+    args = ap.parse_args()
+
+    from flowslam.datasets import open_dataset
+
+    ds = open_dataset(args.sequence)
+    frames = [ds[i] for i in range(min(args.frames, len(ds)))]
+    n_points = int(np.median([len(f.points) for f in frames]))
+    print(f"{args.sequence.name}: {len(frames)} frames, median {n_points} points; threads {args.threads}; "
+          f"load average {os.getloadavg()[0]:.2f}")
+    for name, options in CONFIGS.items():
+        totals, stages = [], {}
+        for _ in range(args.runs):
+            t, s = run_once(frames, options, args.threads)
+            totals += t
+            for k, v in s.items():
+                stages.setdefault(k, []).extend(v)
+        median = statistics.median(totals)
+        parts = ", ".join(f"{k} {statistics.median(v):.0f}" for k, v in stages.items())
+        print(f"{name:>13}: {median:6.0f} ms/frame ({1e3 / median:4.1f} Hz) median of {len(totals)}; "
+              f"stages (median ms): {parts}")
+    print(f"load average after: {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
