@@ -350,6 +350,9 @@ def train_command(
     max_minutes: Optional[float] = typer.Option(None, "--max-minutes", help="Stop after this much wall time."),
     seed: Optional[int] = typer.Option(None, "--seed"),
     resume: Optional[Path] = typer.Option(None, "--resume", help="Continue from a checkpoint."),
+    init_weights: Optional[Path] = typer.Option(
+        None, "--init-weights", help="Start from these weights (file or checkpoint); fresh optimiser."
+    ),
     export: Optional[Path] = typer.Option(None, "--export", help="Write the best checkpoint as a weights file."),
     no_progress: bool = typer.Option(False, "--no-progress"),
 ):
@@ -363,7 +366,7 @@ def train_command(
         base = _json.loads(config.read_text()) if config is not None else {}
         given = dict(data=data or None, val=val or None, out_dir=out_dir, model_preset=preset, num_frames=frames,
                      max_points=max_points, epochs=epochs, batch_size=batch_size, lr=lr,
-                     max_minutes=max_minutes, seed=seed)
+                     max_minutes=max_minutes, seed=seed, init_weights=init_weights)
         base.update({k: v for k, v in given.items() if v is not None})
         try:
             cfg = TrainConfig.model_validate(base)

@@ -60,9 +60,6 @@ class SsfConfig(BaseModel):
     num_threads: int | None = None
     refine: FlowRefinementConfig = FlowRefinementConfig()
     """Test-time refinement of the static flow against the next scan (module doc, step 4)."""
-    second_pass: bool = False
-    """Run the network a second time with the refined ego motion as its prior (step 4b):
-    a nearly right prior leaves only the movers' own motion to predict."""
     objects: ObjectRefinementConfig = ObjectRefinementConfig()
     """Test-time rigid refinement of the moving objects' flow (module doc, step 5)."""
 
@@ -165,10 +162,6 @@ class SsfFrontend:
         if self.options.refine.enabled and refined.accepted:
             est = self.flow_to_pose.estimate(refined.points, refined.flow, dt=dt)
             clock.lap("flow_to_pose")
-            if self.options.second_pass:  # the network again, now with the refined ego motion
-                flow, dynamic_prob = self._predict(frame, T_world_prev @ est.T_prev_curr)
-                static = dynamic_prob < self.options.dynamic_threshold
-                clock.lap("network_second_pass")
             if self.options.objects.enabled:
                 dynamic = ~static
                 tracked, tracked_flow = self._movers.predict(prev.points, est.T_curr_prev)

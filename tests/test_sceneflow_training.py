@@ -60,6 +60,25 @@ def test_noisy_prior_is_bounded_and_sometimes_absent():
     assert errs[:, 1].max() <= 5.1 and errs[:, 1].max() > 3.0
 
 
+def test_prior_noise_size_mixture_draws_smaller_errors():
+    poses = np.stack([geometry.from_euler("z", 0.01 * k, t=[k, 0.1 * k, 0]) for k in range(5)])
+
+    def newest_step_errors(noise, n=400):
+        rng = np.random.default_rng(3)
+        out = []
+        for _ in range(n):
+            pri = noisy_priors(poses, noise, rng)
+            E = pri[3] @ geometry.inv(geometry.relative(poses[4], poses[3]))
+            out.append(geometry.translation_norm(E))
+        return np.array(out)
+
+    full = newest_step_errors(PriorNoise(p_no_prior=0))
+    mixed = newest_step_errors(PriorNoise(p_no_prior=0, scale_exponent=2.0))
+    # E[u^2] = 1/3: a third of the size on average, the full range still reachable
+    assert 0.2 < mixed.mean() / full.mean() < 0.5
+    assert mixed.max() > 0.9 and np.mean(mixed < 0.1) > 0.15 > np.mean(full < 0.1)
+
+
 def test_inference_sample_reads_no_ground_truth(sim_seq):
     ds = open_dataset(sim_seq)
     frames = [ds[i] for i in range(2)]
@@ -97,6 +116,24 @@ def test_train_resume_export_and_run_ssf(sim_seq, tmp_path):
     out = frontend.process(ds[1])
     assert out.flow.shape == ds[0].points.shape  # flow for every point of the previous scan
     assert out.static_mask.shape == (len(ds[0].points),) and geometry.is_se3(out.T_prev_curr, 1e-6)
+
+
+def test_training_starts_from_given_weights(sim_seq, tmp_path):
+    from flowslam.sceneflow.model import ModelConfig, SceneFlowNet
+    from flowslam.sceneflow.train import _initial_state
+    from flowslam.sceneflow.weights import save_weights
+
+    cfg = _config(sim_seq, tmp_path / "run", epochs=1, val=[])
+    model = SceneFlowNet(ModelConfig.preset("tiny", num_frames=2, half_extent=25.6))
+    torch.nn.init.constant_(model.pillars.linear.weight, 0.125)
+    save_weights(tmp_path / "init.pt", model.config.model_dump(), model.state_dict())
+    state = _initial_state(tmp_path / "init.pt", model.config.model_dump())
+    assert torch.equal(state["pillars.linear.weight"], model.pillars.linear.weight)
+    with pytest.raises(InputError, match="not a weights file or checkpoint of this model"):
+        _initial_state(tmp_path / "init.pt", {**model.config.model_dump(), "d_state": 4})
+    train(cfg.model_copy(update={"init_weights": tmp_path / "init.pt", "lr": 1e-9}), progress=False)
+    after = torch.load(tmp_path / "run" / "checkpoint_last.pt", weights_only=True)["model"]
+    torch.testing.assert_close(after["pillars.linear.weight"], model.pillars.linear.weight, atol=1e-5, rtol=0)
 
 
 def test_tampered_or_unhashed_weights_are_refused(sim_seq, tmp_path):
