@@ -7,7 +7,7 @@ import pytest
 from flowslam import geometry
 from flowslam.datasets import open_dataset
 from flowslam.flow_odometry import FlowToPose
-from flowslam.sceneflow.objects import MoverPrior, ObjectRefinementConfig, bev_clusters, refine_objects
+from flowslam.sceneflow.objects import MoverPrior, ObjectRefinementConfig, above_ground, bev_clusters, refine_objects
 from flowslam.sceneflow.refine import FlowRefinementConfig, refine_static_flow
 from flowslam.simulation.labels import CLASS_NAMES
 from flowslam.trajectory import read_trajectory
@@ -148,3 +148,12 @@ def test_ssf_odometry_on_real_kitti_meets_the_reference(kitti_extract):
     out = outputs[-1]
     assert out.flow.shape == out.points.shape and np.isfinite(out.flow).all()  # every point of the scan
     assert out.stats["refine_accepted"] and "objects" in out.stats["stage_ms"]
+
+
+def test_above_ground_separates_the_road_from_what_stands_on_it():
+    rng = np.random.default_rng(0)
+    road = np.column_stack([rng.uniform(-10, 10, 2000), rng.uniform(-10, 10, 2000), -1.7 + 0.02 * rng.standard_normal(2000)])
+    car = np.column_stack([rng.uniform(2, 6, 300), rng.uniform(-1, 1, 300), rng.uniform(-1.3, -0.2, 300)])
+    up = above_ground(np.vstack([road, car]), 2.0, 0.25)
+    assert not up[:2000].any() and up[2000:].all()
+    assert above_ground(np.zeros((0, 3)), 2.0, 0.25).shape == (0,)

@@ -10,7 +10,8 @@ correspondence distances), starting from the ego rotation and the median network
 displacement of its points. Accepted objects (ICP fitness and RMSE within bounds)
 get the rigid flow of their own motion -- or of the ego motion when that explains the
 object's points about as well (fitness within ``static_preference``, RMSE within
-``static_rmse_ratio``: structures that ICP can slide along) -- and are labelled dynamic when that motion
+``static_rmse_ratio``) or well enough (``static_fitness_accept``: structures that ICP can
+slide along) -- and are labelled dynamic when that motion
 moves their points faster than ``dynamic_speed_mps`` relative to the ego-motion flow,
 static otherwise. Points of rejected or too small objects keep the network's flow and
 label, except that network-dynamic points whose ego-rigid landing spot lies on a
@@ -30,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-__all__ = ["ObjectRefinementConfig", "ObjectRefinement", "MoverPrior", "bev_clusters", "refine_objects"]
+__all__ = ["ObjectRefinementConfig", "ObjectRefinement", "MoverPrior", "above_ground", "bev_clusters", "refine_objects"]
 
 
 class ObjectRefinementConfig(BaseModel):
@@ -70,7 +71,11 @@ class ObjectRefinementConfig(BaseModel):
     static_preference: float = Field(0.03, ge=0, le=1)
     """An object is static when the ego motion's fitness is within this of its own ICP's ..."""
     static_rmse_ratio: float = Field(1.2, ge=1)
-    """... and its inlier RMSE at most this times the ICP's (+ 5 mm)."""
+    """... and its inlier RMSE at most this times the ICP's (+ 5 mm) ..."""
+    static_fitness_accept: float = Field(0.9, ge=0, le=1.01)
+    """... or when the ego motion alone puts this share of its points on scan k's surface:
+    a planar patch (road, wall) fits equally well slid along itself, so a better ICP
+    fitness there is no evidence of motion."""
     track_radius_m: float = Field(0.15, ge=0)
     """Points of the next scan this close to a mover's landing spot become candidates
     (``MoverPrior``; 0: no carry-over)."""
@@ -168,6 +173,21 @@ def _score(src: np.ndarray, T: np.ndarray, tree, tgt: np.ndarray, c: ObjectRefin
     return float(inlier.sum()) / len(src), float(np.sqrt(np.mean(plane[inlier] ** 2)))
 
 
+def above_ground(points: np.ndarray, cell: float, clearance: float) -> np.ndarray:
+    """(N,) bool: points higher than the lowest point of their ``cell`` x ``cell`` BEV cell
+    plus ``clearance`` (m): a local ground estimate good enough to tell the road from what
+    stands on it."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    ij = np.floor(points[:, :2] / cell).astype(np.int64)
+    ij -= ij.min(axis=0)
+    key = ij[:, 0] * (ij[:, 1].max() + 1) + ij[:, 1]
+    _, inverse = np.unique(key, return_inverse=True)
+    lowest = np.full(inverse.max() + 1, np.inf)
+    np.minimum.at(lowest, inverse, points[:, 2])
+    return points[:, 2] > lowest[inverse] + clearance
+
+
 def refine_objects(
     source: np.ndarray,
     flow: np.ndarray,
@@ -232,8 +252,9 @@ def refine_objects(
         record["icp_correction_m"] = moved_by
         if fitness < c.min_fitness or rmse > c.max_rmse_m or moved_by > c.max_correction_m:
             continue
-        if static_fitness >= fitness - c.static_preference and static_rmse <= c.static_rmse_ratio * rmse + 0.005:
-            T = T_ego  # the ego motion explains the object as well as its own motion
+        explained = static_fitness >= fitness - c.static_preference and static_rmse <= c.static_rmse_ratio * rmse + 0.005
+        if explained or static_fitness >= c.static_fitness_accept:
+            T = T_ego  # the ego motion explains the object (as well as its own motion, or well enough)
         moved = p @ T[:3, :3].T + T[:3, 3]
         departure = float(np.median(np.linalg.norm(moved - ego, axis=1)))
         record.update(accepted=True, speed_mps=departure / (dt if dt and dt > 0 else 0.1))
@@ -270,15 +291,24 @@ class MoverPrior:
     keeps being refined even where the network misses it.
     """
 
-    def __init__(self, radius_m: float = 0.15):
+    def __init__(self, radius_m: float = 0.15, ground_cell_m: float = 2.0, ground_clearance_m: float = 0.25):
         self.radius_m = radius_m
+        self.ground_cell_m, self.ground_clearance_m = ground_cell_m, ground_clearance_m
         self._landing: np.ndarray | None = None
         self._motion: np.ndarray | None = None
 
     def update(self, source: np.ndarray, flow: np.ndarray, dynamic: np.ndarray, T_ego: np.ndarray) -> None:
-        """Record pair (k-1, k): source points (frame k-1), flow, labels, ``T_ego`` = T_{k,k-1}."""
-        p = source[dynamic]
-        self._landing = p + flow[dynamic]
+        """Record pair (k-1, k): source points (frame k-1), flow, labels, ``T_ego`` = T_{k,k-1}.
+        Ground-level points are not carried (``ground_clearance_m`` above the lowest point of
+        their ``ground_cell_m`` BEV cell): the road under a mover would carry its motion on."""
+        idx = np.flatnonzero(dynamic)
+        if idx.size and self.ground_clearance_m > 0:
+            near = np.hypot(source[:, 0], source[:, 1]) < np.hypot(*np.abs(source[idx, :2]).max(axis=0)) + 5.0
+            above = np.zeros(len(source), dtype=bool)
+            above[near] = above_ground(source[near], self.ground_cell_m, self.ground_clearance_m)
+            idx = idx[above[idx]]
+        p = source[idx]
+        self._landing = p + flow[idx]
         self._motion = self._landing - (p @ T_ego[:3, :3].T + T_ego[:3, 3])
 
     def predict(self, points: np.ndarray, T_ego: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
