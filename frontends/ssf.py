@@ -99,8 +99,11 @@ class SsfFrontend:
             tune_cpu_allocator()
         self.num_frames = self.model.config.num_frames
         self.flow_to_pose = FlowToPose(flow_odometry)
-        # step 3 when refining: only the ICP's start, so IRLS without the RANSAC rescue
-        start = (flow_odometry or FlowOdometryConfig()).model_copy(update={"ransac_below_inlier_ratio": 0.0})
+        # step 3 when refining: only the ICP's start, so IRLS on 5000 pairs, no RANSAC rescue
+        # and no degeneracy check (the refined registration gets the full treatment)
+        start = (flow_odometry or FlowOdometryConfig()).model_copy(
+            update={"ransac_below_inlier_ratio": 0.0, "max_points": 5000, "check_geometry": False}
+        )
         self._network_pose = FlowToPose(start)
         self._frames: deque[Frame] = deque(maxlen=self.num_frames - 1)
         self._poses: deque[np.ndarray] = deque(maxlen=self.num_frames - 1)  # own T_world_sensor estimates
