@@ -242,19 +242,23 @@ def refine_objects(
         objects.append(record)
         if len(tgt) < c.min_points:
             continue
+        tree = cKDTree(tgt)
+        static_fitness, static_rmse = _score(p, T_ego, tree, tgt, c)
+        record.update(static_fitness=static_fitness, static_rmse_m=static_rmse)
+        if static_fitness >= c.static_fitness_accept:  # static whatever the ICP finds: skip it
+            record.update(accepted=True, speed_mps=0.0)
+            flow[idx], dynamic[idx], settled[idx] = ego - p, False, True
+            continue
         T_start = T
         T = _register(p, tgt, T, c)
-        tree = cKDTree(tgt)
         fitness, rmse = _score(p, T, tree, tgt, c)
-        static_fitness, static_rmse = _score(p, T_ego, tree, tgt, c)
-        record.update(fitness=fitness, rmse_m=rmse, static_fitness=static_fitness, static_rmse_m=static_rmse)
+        record.update(fitness=fitness, rmse_m=rmse)
         moved_by = float(np.linalg.norm(T[:3, 3] + T[:3, :3] @ p.mean(axis=0) - T_start[:3, 3] - R @ p.mean(axis=0)))
         record["icp_correction_m"] = moved_by
         if fitness < c.min_fitness or rmse > c.max_rmse_m or moved_by > c.max_correction_m:
             continue
-        explained = static_fitness >= fitness - c.static_preference and static_rmse <= c.static_rmse_ratio * rmse + 0.005
-        if explained or static_fitness >= c.static_fitness_accept:
-            T = T_ego  # the ego motion explains the object (as well as its own motion, or well enough)
+        if static_fitness >= fitness - c.static_preference and static_rmse <= c.static_rmse_ratio * rmse + 0.005:
+            T = T_ego  # the ego motion explains the object as well as its own motion
         moved = p @ T[:3, :3].T + T[:3, 3]
         departure = float(np.median(np.linalg.norm(moved - ego, axis=1)))
         record.update(accepted=True, speed_mps=departure / (dt if dt and dt > 0 else 0.1))
