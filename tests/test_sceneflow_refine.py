@@ -157,3 +157,31 @@ def test_above_ground_separates_the_road_from_what_stands_on_it():
     up = above_ground(np.vstack([road, car]), 2.0, 0.25)
     assert not up[:2000].any() and up[2000:].all()
     assert above_ground(np.zeros((0, 3)), 2.0, 0.25).shape == (0,)
+
+
+@pytest.mark.parametrize("options", [{}, {"objects": {"enabled": False}}, {"refine": {"enabled": False}}])
+def test_ssf_frontend_modes_give_consistent_outputs(sim_pair, options):
+    """Shipped weights on a simulated pair, in each mode: flow for every point, static
+    points moved by the measurement itself whenever the refinement ran."""
+    from flowslam.frontends.ssf import SsfConfig, SsfFrontend
+
+    src, tgt = sim_pair
+    frontend = SsfFrontend(SsfConfig(**options))
+    assert frontend.process(src).T_prev_curr is None
+    out = frontend.process(tgt)
+    assert out.flow.shape == src.points.shape and np.isfinite(out.flow).all()
+    assert geometry.is_se3(out.T_prev_curr, 1e-6)
+    stages = set(out.stats["stage_ms"])
+    if options.get("refine", {}).get("enabled", True):
+        assert out.stats["refine_accepted"]
+        assert stages == {"network", "network_pose", "refine", "flow_to_pose",
+                          "objects" if options.get("objects", {}).get("enabled", True) else "static_flow"}
+        T = geometry.inv(out.T_prev_curr)  # T_{k,k-1}
+        static = out.static_mask
+        rigid = geometry.transform_points(T, src.points[static]) - src.points[static]
+        np.testing.assert_allclose(out.flow[static], rigid, atol=1e-9)
+        # the ego motion is the refined one: millimetres from the exact motion
+        t_err, r_err = _error(T, geometry.relative(tgt.gt_pose, src.gt_pose))
+        assert t_err < 0.02 and r_err < 0.1
+    else:
+        assert stages == {"network", "flow_to_pose"}
