@@ -21,7 +21,9 @@ Per scan ``k`` (k >= 1):
 5. Objects (``objects``, on by default, needs step 4; ``flowslam.sceneflow.objects``):
    candidate moving points are clustered and each object is registered to scan ``k``
    (rigid ICP from the network's displacement); its points get that rigid flow and a
-   dynamic label from its speed relative to the ego motion. The moving points found for
+   dynamic label from its speed relative to the ego motion. Geometric movers (points that
+   left the space scan ``k`` now sees through, ``flowslam.sceneflow.visibility``) are
+   candidates too, with extra ICP starts along their axis. The moving points found for
    one pair are carried over to the next (``MoverPrior``, constant object velocity) as
    extra candidates with a predicted flow, so an object found once stays tracked.
 
@@ -43,6 +45,7 @@ from flowslam.flow_odometry import FlowOdometryConfig, FlowToPose
 from flowslam.interfaces import FrontendOutput
 from flowslam.sceneflow.objects import MoverPrior, ObjectRefinementConfig, refine_objects
 from flowslam.sceneflow.refine import FlowRefinementConfig, refine_static_flow
+from flowslam.sceneflow.visibility import MotionEvidenceConfig, geometric_movers
 
 
 class SsfConfig(BaseModel):
@@ -61,6 +64,8 @@ class SsfConfig(BaseModel):
     refine: FlowRefinementConfig = FlowRefinementConfig()
     """Test-time refinement of the static flow against the next scan (module doc, step 4)."""
     objects: ObjectRefinementConfig = ObjectRefinementConfig()
+    motion_evidence: MotionEvidenceConfig = MotionEvidenceConfig()
+    """Geometric movers (off surface, seen through) added to the objects' candidates."""
     """Test-time rigid refinement of the moving objects' flow (module doc, step 5)."""
 
 
@@ -170,8 +175,12 @@ class SsfFrontend:
                 tracked, tracked_flow = self._movers.predict(prev.points, est.T_curr_prev)
                 flow = np.where(tracked[:, None], tracked_flow, flow)  # last pair's movers, moved on
                 dynamic |= tracked
+                movers = seen = None
+                if self.options.motion_evidence.enabled:
+                    movers, seen = geometric_movers(prev.points, frame.points, est.T_curr_prev,
+                                                    self.options.motion_evidence)
                 objects = refine_objects(prev.points, flow, dynamic, frame.points, est.T_curr_prev, dt,
-                                         self.options.objects, cKDTree(refined.target_points))
+                                         self.options.objects, cKDTree(refined.target_points), movers, seen)
                 flow, static = objects.flow, ~objects.dynamic
                 self._movers.update(prev.points, flow, objects.dynamic, est.T_curr_prev)
                 refine_stats.update(objects.stats, tracked_candidates=int(tracked.sum()))

@@ -1,10 +1,10 @@
 """Test-time rigid refinement of the moving points' flow, object by object (first version).
 
 After the ego motion ``T_{k,k-1}`` is refined (:mod:`flowslam.sceneflow.refine`), the
-*candidate* moving points of scan ``k-1`` (the network's dynamic points, plus points
-whose network flow departs from the ego motion and whose rigid landing spot does not
-lie on a surface of scan ``k``) are grouped into objects by connected components on a
-bird's-eye-view grid (``cluster_cell_m``). Each object with at least ``min_points``
+*candidate* moving points of scan ``k-1`` -- the network's dynamic points, the movers of
+the previous pair carried on (:class:`MoverPrior`) and the geometric movers
+(:func:`flowslam.sceneflow.visibility.geometric_movers`) -- are grouped into objects by
+connected components on a bird's-eye-view grid (``cluster_cell_m``). Each object with at least ``min_points``
 points is registered to scan ``k`` by point-to-point ICP (Open3D, coarse-to-fine
 correspondence distances), starting from the ego rotation and the median network
 displacement of its points. Accepted objects (ICP fitness and RMSE within bounds)
@@ -13,7 +13,11 @@ object's points about as well (fitness within ``static_preference``, RMSE within
 ``static_rmse_ratio``) or well enough (``static_fitness_accept``: structures that ICP can
 slide along) -- and are labelled dynamic when that motion
 moves their points faster than ``dynamic_speed_mps`` relative to the ego-motion flow,
-static otherwise. Points of rejected or too small objects keep the network's flow and
+static otherwise. Objects holding geometric movers also start ICP from the ego landing
+shifted along their axis (``hypotheses_m``), and their movers get an ICP of their own
+(a mover merged with static false positives keeps its own motion); each point then
+takes the candidate motion that puts it nearest to scan ``k``'s surface, the ego motion
+when that is strictly nearer. Points of rejected or too small objects keep the network's flow and
 label, except that network-dynamic points whose ego-rigid landing spot lies on a
 surface of scan ``k`` become static (the static explanation fits the data).
 
@@ -79,6 +83,10 @@ class ObjectRefinementConfig(BaseModel):
     track_radius_m: float = Field(0.15, ge=0)
     """Points of the next scan this close to a mover's landing spot become candidates
     (``MoverPrior``; 0: no carry-over)."""
+    hypotheses_m: list[float] = Field(default_factory=lambda: [-2.0, -1.0, -0.5, 0.5, 1.0, 2.0])
+    """Objects with seen-through points also start ICP from the ego landing shifted by
+    these distances along their principal (BEV) axis."""
+    min_seen_through: int = Field(5, ge=1)
     dynamic_speed_mps: float = Field(0.5, ge=0)
     """Objects moving faster than this (relative to the ego-motion flow) are dynamic."""
 
@@ -155,6 +163,18 @@ def _normals_at(tree, tgt: np.ndarray, idx: np.ndarray, radius: float, k: int = 
     return normals
 
 
+def _best_icp(p: np.ndarray, tgt: np.ndarray, tree, starts: list[np.ndarray], c: "ObjectRefinementConfig"):
+    """ICP of ``p`` onto ``tgt`` from each start; the best by (fitness, -RMSE):
+    (T, fitness, rmse, start)."""
+    best = None
+    for T_start in starts:
+        T = _register(p, tgt, T_start, c)
+        fitness, rmse = _score(p, T, tree, tgt, c)
+        if best is None or (fitness, -rmse) > (best[1], -best[2]):
+            best = (T, fitness, rmse, T_start)
+    return best
+
+
 def _score(src: np.ndarray, T: np.ndarray, tree, tgt: np.ndarray, c: ObjectRefinementConfig):
     """(fitness, RMSE) of ``T src`` against the target surface: a point is an inlier when its
     nearest target point is within ``score_distance_m`` and it lies within ``score_plane_m``
@@ -171,6 +191,13 @@ def _score(src: np.ndarray, T: np.ndarray, tree, tgt: np.ndarray, c: ObjectRefin
     if not inlier.any():
         return 0.0, float("inf")
     return float(inlier.sum()) / len(src), float(np.sqrt(np.mean(plane[inlier] ** 2)))
+
+
+def _principal_axis(points: np.ndarray) -> np.ndarray:
+    """Unit principal axis (x, y, 0) of the BEV spread of (N,3) points."""
+    xy = points[:, :2] - points[:, :2].mean(axis=0)
+    v = np.linalg.eigh(xy.T @ xy)[1][:, 1]
+    return np.array([v[0], v[1], 0.0])
 
 
 def above_ground(points: np.ndarray, cell: float, clearance: float) -> np.ndarray:
@@ -197,6 +224,8 @@ def refine_objects(
     dt: float,
     config: ObjectRefinementConfig | None = None,
     target_tree=None,
+    movers: np.ndarray | None = None,
+    seen_through: np.ndarray | None = None,
 ) -> ObjectRefinement:
     """Refine the flow of the candidate moving points of ``source`` (scan k-1) against
     ``target`` (scan k) given the ego motion ``T_ego`` = ``T_{k,k-1}`` (module doc).
@@ -204,7 +233,11 @@ def refine_objects(
     ``flow`` (N,3) is the network's flow, ``dynamic`` (N,) its labels, ``dt`` the scan
     interval (s). In the result, static points have the ego-rigid flow of ``T_ego``,
     registered objects their own rigid flow, other dynamic points the network's flow. ``target_tree``
-    may be a ``scipy.spatial.cKDTree`` over (a downsampling of) ``target``.
+    may be a ``scipy.spatial.cKDTree`` over (a downsampling of) ``target``. ``movers`` and
+    ``seen_through`` (N,) bool: geometric motion evidence
+    (:func:`flowslam.sceneflow.visibility.geometric_movers`); movers become candidates, and
+    objects with seen-through points also start ICP from shifted ego landings
+    (``hypotheses_m``), since free space says *that* they moved, not where to.
     """
     from scipy.spatial import cKDTree
 
@@ -212,7 +245,10 @@ def refine_objects(
     flow, dynamic = np.array(flow, dtype=np.float64), np.array(dynamic, dtype=bool)
     if target_tree is None:
         target_tree = cKDTree(target)
-    cand = np.flatnonzero(_candidates(source, flow, dynamic, target_tree, T_ego, c))
+    cand_mask = _candidates(source, flow, dynamic, target_tree, T_ego, c)
+    movers = np.zeros(len(source), dtype=bool) if movers is None else np.asarray(movers, dtype=bool)
+    seen = np.zeros(len(source), dtype=bool) if seen_through is None else np.asarray(seen_through, dtype=bool)
+    cand = np.flatnonzero(cand_mask | movers)
     labels = bev_clusters(source[cand], c.cluster_cell_m)
     counts = np.bincount(labels) if labels.size else np.zeros(0, dtype=np.int64)
     R = T_ego[:3, :3]
@@ -227,13 +263,22 @@ def refine_objects(
     for label in np.flatnonzero(counts >= c.min_points):
         idx = cand[order[starts[label]:starts[label + 1]]]
         p = source[idx]
-        T = np.eye(4)
-        T[:3, :3] = R
-        T[:3, 3] = np.median(p + flow[idx] - p @ R.T, axis=0)
-        guess = p @ R.T + T[:3, 3]
+        T0 = np.eye(4)
+        T0[:3, :3] = R
+        T0[:3, 3] = np.median(p + flow[idx] - p @ R.T, axis=0)  # the network's (or carried) displacement
         ego = p @ R.T + T_ego[:3, 3]  # where the points land if they are static
-        lo = np.minimum(guess.min(axis=0), ego.min(axis=0)) - c.margin_m
-        hi = np.maximum(guess.max(axis=0), ego.max(axis=0)) + c.margin_m
+        sub = movers[idx]
+        mover_starts = []
+        if c.hypotheses_m and sub.sum() >= c.min_points and seen[idx].sum() >= c.min_seen_through:
+            axis = R @ _principal_axis(p[sub])
+            for d in c.hypotheses_m:
+                shifted = T_ego.copy()
+                shifted[:3, 3] += d * axis
+                mover_starts.append(shifted)
+        reach = max(abs(d) for d in c.hypotheses_m) if mover_starts else 0.0
+        guess = p @ R.T + T0[:3, 3]
+        lo = np.minimum(guess.min(axis=0), ego.min(axis=0)) - c.margin_m - reach
+        hi = np.maximum(guess.max(axis=0), ego.max(axis=0)) + c.margin_m + reach
         a, b = np.searchsorted(near_target[:, 0], [lo[0], hi[0]])
         tgt = near_target[a:b]
         tgt = tgt[np.all((tgt[:, 1:] >= lo[1:]) & (tgt[:, 1:] <= hi[1:]), axis=1)]
@@ -249,21 +294,40 @@ def refine_objects(
             record.update(accepted=True, speed_mps=0.0)
             flow[idx], dynamic[idx], settled[idx] = ego - p, False, True
             continue
-        T_start = T
-        T = _register(p, tgt, T, c)
-        fitness, rmse = _score(p, T, tree, tgt, c)
-        record.update(fitness=fitness, rmse_m=rmse)
-        moved_by = float(np.linalg.norm(T[:3, 3] + T[:3, :3] @ p.mean(axis=0) - T_start[:3, 3] - R @ p.mean(axis=0)))
-        record["icp_correction_m"] = moved_by
-        if fitness < c.min_fitness or rmse > c.max_rmse_m or moved_by > c.max_correction_m:
+        motions = []  # candidate rigid motions of (parts of) this object besides the ego motion
+        T, fitness, rmse, T_start = _best_icp(p, tgt, tree, [T0] + mover_starts, c)
+        moved_by = float(np.linalg.norm((T[:3, :3] - R) @ p.mean(axis=0) + T[:3, 3] - T_start[:3, 3]))
+        record.update(fitness=fitness, rmse_m=rmse, icp_correction_m=moved_by)
+        if fitness >= c.min_fitness and rmse <= c.max_rmse_m and moved_by <= c.max_correction_m:
+            record["accepted"] = True
+            if not (static_fitness >= fitness - c.static_preference
+                    and static_rmse <= c.static_rmse_ratio * rmse + 0.005):
+                motions.append(T)  # not explained as well by the ego motion
+        if mover_starts:  # the geometric movers alone, from shifted ego landings
+            Tm, fm, rm, _ = _best_icp(p[sub], tgt, tree, mover_starts + [T0], c)
+            joint_on_movers = _score(p[sub], motions[0], tree, tgt, c)[0] if motions else 0.0
+            record.update(mover_fitness=fm, mover_rmse_m=rm)
+            # only when the object's own ICP does not already explain its movers
+            if fm >= c.min_fitness and rm <= c.max_rmse_m and fm > joint_on_movers + c.static_preference:
+                record["accepted"] = True
+                motions.append(Tm)
+        if not record["accepted"]:
             continue
-        if static_fitness >= fitness - c.static_preference and static_rmse <= c.static_rmse_ratio * rmse + 0.005:
-            T = T_ego  # the ego motion explains the object as well as its own motion
-        moved = p @ T[:3, :3].T + T[:3, 3]
-        departure = float(np.median(np.linalg.norm(moved - ego, axis=1)))
-        record.update(accepted=True, speed_mps=departure / (dt if dt and dt > 0 else 0.1))
-        flow[idx] = moved - p
-        dynamic[idx] = departure > speed_bound
+        # per point: the ego motion when it puts the point strictly nearer to scan k's surface than
+        # every object motion, else the nearest object motion (the first when none lands near)
+        chosen = ego
+        if motions:
+            landings = [p @ M[:3, :3].T + M[:3, 3] for M in motions]
+            dist = np.stack([tree.query(x, distance_upper_bound=c.score_distance_m)[0] for x in landings])
+            best = np.argmin(dist, axis=0)
+            chosen = np.stack(landings)[best, np.arange(len(idx))]
+            d_ego = tree.query(ego, distance_upper_bound=c.score_distance_m)[0]
+            chosen = np.where((d_ego < dist[best, np.arange(len(idx))])[:, None], ego, chosen)
+        departure = np.linalg.norm(chosen - ego, axis=1)
+        moving = departure > speed_bound
+        record["speed_mps"] = float(np.median(departure[moving]) / (dt if dt and dt > 0 else 0.1)) if moving.any() else 0.0
+        flow[idx] = np.where(moving[:, None], chosen, ego) - p
+        dynamic[idx] = moving
         settled[idx] = True
     # the rest of the network's dynamic points: static if the ego motion lands them on a surface
     rest = np.flatnonzero(dynamic & ~settled)
@@ -278,7 +342,7 @@ def refine_objects(
         "object_candidates": int(cand.size),
         "objects": len(objects),
         "objects_accepted": sum(o["accepted"] for o in objects),
-        "objects_dynamic": sum(1 for o in objects if o["accepted"] and o["speed_mps"] > c.dynamic_speed_mps),
+        "objects_dynamic": sum(1 for o in objects if o.get("speed_mps", 0.0) > c.dynamic_speed_mps),
         "relabelled_static": int(on_surface.sum()),
     }
     return ObjectRefinement(flow, dynamic, instance, objects, stats)

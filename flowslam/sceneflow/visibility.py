@@ -1,0 +1,126 @@
+"""Geometric evidence of motion between two scans, given the ego motion (no learning).
+
+Move the points of scan ``k-1`` into sensor frame ``k`` with the ego motion. A static
+point then lies on a surface of scan ``k``, or behind one (occluded). Two tests:
+
+- **off surface**: no point of scan ``k`` within ``off_surface_m`` of it;
+- **seen through** (free space): in a range image of scan ``k`` (azimuth x elevation
+  bins, nearest range per bin), every bin with a return in a small window around the
+  point's direction has it clearly *beyond* the point -- scan ``k`` sees through where
+  the point was, so whatever was there has left. Bins without a return count as unknown,
+  so the test is conservative: it fires on the trailing part of a moving object.
+
+:func:`geometric_movers` groups the non-ground points that are off surface into BEV
+connected components and keeps those that hold enough seen-through points: moving
+objects found by geometry alone, which the learned segmentation may have missed.
+
+Frames: ``source`` in sensor frame ``k-1``, ``target`` in sensor frame ``k``,
+``T_ego`` = ``T_{k,k-1}``; metres and degrees.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+__all__ = ["MotionEvidenceConfig", "RangeImage", "spherical", "geometric_movers"]
+
+
+class MotionEvidenceConfig(BaseModel):
+    """Options of :func:`geometric_movers` (metres, degrees)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = True
+    max_range_m: float = Field(40.0, gt=0)
+    azimuth_resolution_deg: float = Field(0.4, gt=0)
+    elevation_resolution_deg: float = Field(0.4, gt=0)
+    window: int = Field(1, ge=0)
+    """Half-size of the bin window that must all see beyond the point (1: 3x3 bins)."""
+    margin_m: float = Field(0.3, ge=0)
+    relative_margin: float = Field(0.02, ge=0)
+    """A return is beyond a point at range r when farther than r + margin_m + relative_margin r."""
+    off_surface_m: float = Field(0.25, gt=0)
+    ground_cell_m: float = Field(2.0, gt=0)
+    ground_clearance_m: float = Field(0.3, ge=0)
+    cluster_cell_m: float = Field(0.4, gt=0)
+    min_points: int = Field(15, ge=1)
+    min_seen_through: int = Field(5, ge=1)
+    max_extent_m: float = Field(12.0, gt=0)
+
+
+def spherical(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Azimuth (deg, -180..180), elevation (deg) and range (m) of (N,3) points."""
+    r = np.linalg.norm(points, axis=1)
+    az = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
+    el = np.degrees(np.arcsin(np.clip(points[:, 2] / np.maximum(r, 1e-9), -1.0, 1.0)))
+    return az, el, r
+
+
+class RangeImage:
+    """Nearest range per (elevation, azimuth) bin of a scan (points in its sensor frame)."""
+
+    def __init__(self, points: np.ndarray, config: MotionEvidenceConfig | None = None):
+        from scipy import ndimage
+
+        self.config = c = config or MotionEvidenceConfig()
+        az, el, r = spherical(np.asarray(points, dtype=np.float64))
+        self.el0 = float(el.min()) if len(el) else 0.0
+        self.n_az = int(np.ceil(360.0 / c.azimuth_resolution_deg))
+        self.n_el = (int(np.ceil((float(el.max()) - self.el0) / c.elevation_resolution_deg)) + 1) if len(el) else 1
+        image = np.full((self.n_el, self.n_az), np.inf)
+        np.minimum.at(image, self._bins(az, el), r)
+        size = 2 * c.window + 1
+        # nearest return within the window (empty bins are +inf: they do not count) ...
+        self.window_min = ndimage.minimum_filter(image, size=size, mode=("nearest", "wrap"))
+        # ... and whether the window has any return at all
+        self.window_known = ndimage.maximum_filter(np.isfinite(image), size=size, mode=("nearest", "wrap"))
+
+    def _bins(self, az: np.ndarray, el: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        c = self.config
+        ia = np.floor((az + 180.0) / c.azimuth_resolution_deg).astype(np.int64) % self.n_az
+        ie = np.floor((el - self.el0) / c.elevation_resolution_deg).astype(np.int64)
+        return ie, ia
+
+    def sees_beyond(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: in the window around each point's direction (sensor frame of this scan)
+        at least one bin has a return and every return lies clearly beyond the point."""
+        c = self.config
+        az, el, r = spherical(np.asarray(points, dtype=np.float64))
+        ie, ia = self._bins(az, el)
+        inside = (ie >= 0) & (ie < self.n_el)
+        ie = np.clip(ie, 0, self.n_el - 1)
+        beyond = self.window_min[ie, ia] > r + c.margin_m + c.relative_margin * r
+        return inside & self.window_known[ie, ia] & beyond
+
+
+def geometric_movers(
+    source: np.ndarray, target: np.ndarray, T_ego: np.ndarray, config: MotionEvidenceConfig | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(movers, seen_through): (N,) bool masks over ``source`` (module doc)."""
+    from scipy.spatial import cKDTree
+
+    from flowslam.sceneflow.objects import above_ground, bev_clusters
+
+    c = config or MotionEvidenceConfig()
+    movers = np.zeros(len(source), dtype=bool)
+    seen = np.zeros(len(source), dtype=bool)
+    near = np.flatnonzero(np.hypot(source[:, 0], source[:, 1]) < c.max_range_m)
+    near = near[above_ground(source[near], c.ground_cell_m, c.ground_clearance_m)]
+    if near.size == 0:
+        return movers, seen
+    x = source[near] @ T_ego[:3, :3].T + T_ego[:3, 3]
+    tgt = target[np.hypot(target[:, 0], target[:, 1]) < c.max_range_m + 5.0]
+    off = ~np.isfinite(cKDTree(tgt).query(x, distance_upper_bound=c.off_surface_m)[0])
+    near, x = near[off], x[off]
+    if near.size == 0:
+        return movers, seen
+    seen[near] = RangeImage(target, c).sees_beyond(x)
+    labels = bev_clusters(source[near], c.cluster_cell_m)
+    counts = np.bincount(labels)
+    seeds = np.bincount(labels, weights=seen[near].astype(np.float64), minlength=len(counts))
+    for label in np.flatnonzero((counts >= c.min_points) & (seeds >= c.min_seen_through)):
+        idx = near[labels == label]
+        if np.hypot(*np.ptp(source[idx, :2], axis=0)) <= c.max_extent_m:
+            movers[idx] = True
+    return movers, seen
