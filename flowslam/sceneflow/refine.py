@@ -35,6 +35,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from flowslam.geometry import transform_points
+
 __all__ = ["FlowRefinementConfig", "RefinedFlow", "refine_static_flow"]
 
 
@@ -136,7 +138,7 @@ def refine_static_flow(
 
     # snap: refined position moved onto the tangent plane of the nearest target point
     p = np.asarray(src.points)
-    x = p @ T[:3, :3].T + T[:3, 3]
+    x = transform_points(T, p)
     dist, j = cKDTree(tgt_points).query(x, distance_upper_bound=c.correspondence_m[-1])
     ok = np.isfinite(dist)
     fitness = float(ok.mean())

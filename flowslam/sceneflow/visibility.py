@@ -23,6 +23,8 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from flowslam.geometry import transform_points
+
 __all__ = ["MotionEvidenceConfig", "RangeImage", "spherical", "geometric_movers"]
 
 
@@ -109,7 +111,7 @@ def geometric_movers(
     near = near[above_ground(source[near], c.ground_cell_m, c.ground_clearance_m)]
     if near.size == 0:
         return movers, seen
-    x = source[near] @ T_ego[:3, :3].T + T_ego[:3, 3]
+    x = transform_points(T_ego, source[near])
     tgt = target[np.hypot(target[:, 0], target[:, 1]) < c.max_range_m + 5.0]
     off = ~np.isfinite(cKDTree(tgt).query(x, distance_upper_bound=c.off_surface_m)[0])
     near, x = near[off], x[off]
