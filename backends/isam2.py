@@ -8,13 +8,14 @@ Graph
 - Odometry: ``BetweenFactorPose3(X(k-1), X(k), T_prev_curr)`` with the frontend's 6x6
   covariance (GTSAM order: rotation rad, translation m; right perturbation) under a
   Huber kernel (``huber_k``, in whitened units).
-- Loops (variant ``s-loam``): ``BetweenFactorPose3(X(i), X(j), T_i_j)`` with the loop
+- Loops (whatever the run's loop closer finds; none in variant ``a-loam``, where
+  ``loop_closure.enabled`` is false): ``BetweenFactorPose3(X(i), X(j), T_i_j)`` with the loop
   covariance under a Cauchy kernel (``cauchy_k``), followed by up to
   ``extra_iterations_after_loop`` empty iSAM2 updates (each relinearises what moved more
   than the threshold; they stop early once nothing is relinearised). A Cauchy kernel
   gives an inconsistent (false) loop a pull that *falls* with its residual, so the
-  odometry chain holds; a consistent one is drawn in over the iterations. Variant
-  ``a-loam`` ignores loops (counted in ``loops_ignored``).
+  odometry chain holds; a consistent one is drawn in over the iterations. The backend
+  adds every loop it is given: whether loops are searched for is not its concern.
 
 One ``ISAM2.update`` per scan with only the new factor and the new value. The new pose
 is initialised as ``latest estimate * T_prev_curr``, so a chain without loops has zero
@@ -77,66 +78,21 @@ import logging
 import re
 import time
 from dataclasses import asdict, dataclass
-from typing import Literal
 
+import gtsam
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from flowslam import geometry
-from flowslam.loop_closure.config import LoopClosureConfig
+from flowslam.config.isam2 import Isam2Config
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Isam2Config", "Isam2Backend", "LoopRecord", "IndeterminateEvent", "make_backend"]
+__all__ = ["Isam2Backend", "LoopRecord", "IndeterminateEvent", "make_backend"]
 
-_WEAK_PRIOR_SIGMAS = np.array([np.pi] * 3 + [1e3] * 3)
+_WEAK_PRIOR_SIGMAS = geometry.pose_sigmas(np.pi, 1e3)
 """Last-resort prior (rad, m) on a pose whose odometry factor could not be used."""
 
 
-class Isam2Config(BaseModel):
-    """Options of the ``isam2`` backend (``isam2:`` in the run config). Radians, metres;
-    ``_deg`` fields in degrees; kernel widths in whitened (unit-sigma) residual units."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    variant: Literal["a-loam", "s-loam"] = "s-loam"
-    """``a-loam``: odometry only; ``s-loam``: with Scan Context loop closure."""
-    relinearize_threshold_rad: float = Field(0.02, gt=0)
-    """Relinearise a pose when a rotation component of its linear delta exceeds this (rad) ..."""
-    relinearize_threshold_m: float = Field(1.0, gt=0)
-    """... or a translation component exceeds this (m)."""
-    relinearize_skip: int = Field(1, ge=1)
-    """Check for relinearisation every this many updates."""
-    factorization: Literal["cholesky", "qr"] = "cholesky"
-    partial_relinearization_check: bool = False
-    """GTSAM's ``enablePartialRelinearizationCheck``: check only the cliques whose delta changed."""
-    huber_k: float = Field(1.345, gt=0)
-    """Huber kernel width of the odometry factors."""
-    cauchy_k: float = Field(3.0, gt=0)
-    """Cauchy kernel width of the loop factors, in units of the loop's *combined* 1-sigma
-    (see ``chain_aware_loop_kernel``)."""
-    chain_aware_loop_kernel: bool = True
-    """Widen each loop's Cauchy kernel by the odometry chain's own uncertainty between its
-    two scans: k = cauchy_k * sqrt(1 + var_chain / var_loop) (the larger of the rotation and
-    translation ratios; capped by ``max_loop_kernel_scale``). A true loop that disagrees by the drift the odometry covariances
-    allow keeps its weight; a loop far outside that envelope is still cut down. Off: the
-    kernel sees the loop's own covariance only, and true loops after long drift are ignored."""
-    max_loop_kernel_scale: float = Field(5.0, ge=1.0)
-    """Cap of that widening: a loop must still agree with the chain to within
-    ``cauchy_k * max_loop_kernel_scale`` loop sigmas to keep a useful weight, so a false loop
-    between far-apart scans (whose chain uncertainty is huge) stays cut down."""
-    prior_rotation_sigma_deg: float = Field(1e-4, gt=0)
-    prior_translation_sigma_m: float = Field(1e-4, gt=0)
-    """Prior on the first pose (at the identity)."""
-    fallback_rotation_sigma_deg: float = Field(0.5, gt=0)
-    fallback_translation_sigma_m: float = Field(0.2, gt=0)
-    """Odometry covariance used when the frontend gives none or one iSAM2 cannot use."""
-    extra_iterations_after_loop: int = Field(1, ge=0)
-    """Empty iSAM2 updates after each loop factor (stop early once nothing relinearises)."""
-    refine_iterations: int = Field(30, ge=0)
-    """``trajectory()`` of a graph with loops: at most this many batch Levenberg-Marquardt
-    iterations from the iSAM2 estimate (0 = return the iSAM2 estimate as it is)."""
-    loop_closure: LoopClosureConfig = LoopClosureConfig()
 
 
 @dataclass
@@ -184,14 +140,8 @@ class _Rejected(Exception):
     or a noise model (unusable covariance: iSAM2 untouched)."""
 
 
-def _gtsam():
-    import gtsam  # lazy: flowslam's start-up (and loading a config) never imports GTSAM
-
-    return gtsam
-
-
 def _key(index: int) -> int:
-    return _gtsam().symbol("x", int(index))
+    return gtsam.symbol("x", int(index))
 
 
 def _first_line(error: BaseException) -> str:
@@ -208,14 +158,15 @@ class Isam2Backend:
     """iSAM2 pose graph (see module doc). Indices are dataset frame indices, in order."""
 
     name = "isam2"
+    accepts_loops = True
+    """The run builds a loop closer for this backend when ``loop_closure.enabled``."""
 
     def __init__(self, config: Isam2Config | None = None):
-        gtsam = _gtsam()
         self.config = config or Isam2Config()
         c = self.config
         self._params = gtsam.ISAM2Params()
         thresholds = gtsam.ISAM2ThresholdMap()
-        thresholds.insert(("x", np.array([c.relinearize_threshold_rad] * 3 + [c.relinearize_threshold_m] * 3)))
+        thresholds.insert(("x", geometry.pose_sigmas(c.relinearize_threshold_rad, c.relinearize_threshold_m)))
         self._params.setRelinearizeThreshold(thresholds)
         self._params.relinearizeSkip = c.relinearize_skip
         self._params.setFactorization(c.factorization.upper())
@@ -225,9 +176,8 @@ class Isam2Backend:
         """Every factor iSAM2 accepted (to rebuild it after an indeterminate system)."""
         self._huber = gtsam.noiseModel.mEstimator.Huber.Create(c.huber_k)
         self._cauchy = gtsam.noiseModel.mEstimator.Cauchy.Create(c.cauchy_k)
-        self._fallback_cov = np.diag(
-            [np.deg2rad(c.fallback_rotation_sigma_deg) ** 2] * 3 + [c.fallback_translation_sigma_m**2] * 3
-        )
+        self._fallback_cov = geometry.pose_covariance(
+            np.deg2rad(c.fallback_rotation_sigma_deg), c.fallback_translation_sigma_m)
         self._indices: list[int] = []
         self._known: set[int] = set()
         self._latest = gtsam.Pose3()
@@ -236,8 +186,6 @@ class Isam2Backend:
         self._odometry_cov: list[np.ndarray] = []
         self.loops: list[LoopRecord] = []
         """Every loop factor added, in order."""
-        self.loops_ignored = 0
-        """Loops passed to an ``a-loam`` backend (not added)."""
         self.events: list[IndeterminateEvent] = []
         """Every update GTSAM refused, with the frame index and the repair."""
         self.update_seconds: list[float] = []
@@ -256,7 +204,6 @@ class Isam2Backend:
     def add_odometry(self, index: int, T_prev_curr: np.ndarray | None, covariance: np.ndarray | None) -> None:
         """Add scan ``index`` with ``T_prev_curr`` (maps it into the previous scan) and its
         6x6 covariance; the first scan (``T_prev_curr`` ignored) is anchored at the identity."""
-        gtsam = _gtsam()
         start = time.perf_counter()
         index = int(index)
         if index in self._known:
@@ -264,7 +211,7 @@ class Isam2Backend:
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         if not self._indices:
             c = self.config
-            sigmas = np.array([np.deg2rad(c.prior_rotation_sigma_deg)] * 3 + [c.prior_translation_sigma_m] * 3)
+            sigmas = geometry.pose_sigmas(np.deg2rad(c.prior_rotation_sigma_deg), c.prior_translation_sigma_m)
             prior = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
             graph.add(gtsam.PriorFactorPose3(_key(index), gtsam.Pose3(), prior))
             values.insert(_key(index), gtsam.Pose3())
@@ -297,13 +244,8 @@ class Isam2Backend:
 
     def add_loop(self, i: int, j: int, T_i_j: np.ndarray, covariance: np.ndarray) -> LoopRecord | None:
         """Add the constraint ``T_i_j`` (maps scan j into scan i; 6x6 covariance) between two
-        added scans with a Cauchy kernel, then iterate. Returns its record (None if not added)."""
-        gtsam = _gtsam()
+        added scans with a Cauchy kernel, then iterate. Returns its record (None if GTSAM refused it)."""
         i, j = int(i), int(j)
-        if self.config.variant == "a-loam":
-            self.loops_ignored += 1
-            log.debug("a-loam ignores loop %d-%d", i, j)
-            return None
         for k in (i, j):
             if k not in self._known:
                 raise ValueError(f"loop {i}-{j}: scan {k} was not added")
@@ -422,7 +364,6 @@ class Isam2Backend:
         return {
             "scans": len(self._indices),
             "loops": len(self.loops),
-            "loops_ignored": self.loops_ignored,
             "indeterminate_events": len(self.events),
             "rebuilds": self.rebuilds,
             "median_update_ms": q(upd, 50),
@@ -454,7 +395,6 @@ class Isam2Backend:
 
     def _robust(self, kernel, covariance: np.ndarray):
         """Robust Gaussian noise model; GTSAM's refusal (e.g. negative variance) -> _Rejected."""
-        gtsam = _gtsam()
         cov = np.asarray(covariance, dtype=np.float64)
         if cov.shape != (6, 6):
             raise ValueError(f"covariance must be 6x6, got {cov.shape}")
@@ -487,7 +427,6 @@ class Isam2Backend:
         """Fresh ISAM2 from the accepted factors plus ``extra_graph`` at the last linearisation
         point (``new_values`` for keys it lacks); _Rejected if that fails too. If iSAM2 was
         not left broken (GTSAM refused a noise model), just update it."""
-        gtsam = _gtsam()
         if not self._broken:
             self._update(extra_graph, new_values)
             return
@@ -510,7 +449,6 @@ class Isam2Backend:
             raise
 
     def _repair_odometry(self, index: int, prev: int, measured, guess, message: str) -> None:
-        gtsam = _gtsam()
         values = gtsam.Values()
         values.insert(_key(index), guess)
         fallback = gtsam.NonlinearFactorGraph()
@@ -533,7 +471,6 @@ class Isam2Backend:
 
     def _refine(self) -> np.ndarray:
         """Batch Levenberg-Marquardt over all accepted factors from the iSAM2 estimate."""
-        gtsam = _gtsam()
         start = time.perf_counter()
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(self.config.refine_iterations)

@@ -16,6 +16,8 @@ log = logging.getLogger(__name__)
 
 class OdometryBackend:
     name = "odometry"
+    accepts_loops = False
+    """No graph: the run builds no loop closer for this backend."""
 
     def __init__(self):
         self._poses: list[np.ndarray] = []

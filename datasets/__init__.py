@@ -4,7 +4,8 @@
 first, then): a ``.bag`` file, or a folder with ``metadata.yaml`` / ``*.db3`` /
 ``*.mcap`` -> ``rosbag``; a folder with ``sequences/`` or ``velodyne/`` -> ``kitti``;
 a folder with ``sensors/lidar/`` -> ``argoverse2``; any other folder -> ``folder``
-(a folder of scan files). ``fmt=`` overrides the guess.
+(a folder of scan files). ``format=`` (``dataset.format`` in the run config)
+overrides the guess.
 
 The reader modules (and their heavy dependencies rosbags / pyarrow / open3d) are
 imported only when a dataset of that format is opened.
@@ -17,10 +18,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+from flowslam.config.dataset import DatasetConfig
 from flowslam.datasets.frame import Dataset, Frame
 from flowslam.errors import InputError
 
-__all__ = ["Dataset", "Frame", "open_dataset", "available_formats", "register_format"]
+__all__ = ["Dataset", "Frame", "open_dataset", "frame_range", "available_formats", "register_format"]
 
 
 @dataclass(frozen=True)
@@ -84,7 +86,7 @@ def register_format(
 
     ``detect_fn(path) -> bool`` makes ``open_dataset`` pick it automatically; user
     formats are tried before the built-in ones (latest registration first). Without
-    it the format is used only with ``fmt=name``. The reader receives the options
+    it the format is used only with ``format=name``. The reader receives the options
     (``topic``, ``gt_topic``, ``sequence``, ``poses``, ``vertical_correction_deg``)
     that were not None.
     Registering an existing name replaces that entry.
@@ -99,29 +101,37 @@ def _formats() -> list[_Format]:
 
 
 def available_formats() -> list[str]:
-    """Names usable as ``fmt=`` (user-registered first, then the built-ins)."""
+    """Names usable as ``format=`` (user-registered first, then the built-ins)."""
     return [f.name for f in _formats()]
 
 
-def open_dataset(
-    path: str | Path,
-    *,
-    fmt: str | None = None,
-    topic: str | None = None,
-    gt_topic: str | None = None,
-    sequence: str | int | None = None,
-    poses: str | Path | None = None,
-    vertical_correction_deg: float | None = None,
-) -> Dataset:
-    """Open a dataset, guessing its format from ``path`` unless ``fmt`` is given (module doc).
+_READER_OPTIONS = {
+    "topic": "topic", "gt_topic": "gt_topic", "sequence": "sequence", "poses": "poses",
+    "kitti_vertical_correction_deg": "vertical_correction_deg",
+}
+"""``DatasetConfig`` field -> keyword of the reader classes."""
 
-    Raises ``InputError`` for a missing path, an unknown ``fmt``, an undetectable
-    format, or an option that the chosen reader does not take.
+
+def open_dataset(path: str | Path, config: DatasetConfig | None = None, **options: Any) -> Dataset:
+    """Open the dataset at ``path`` with the ``dataset:`` options of a run config.
+
+    ``config`` is a ``DatasetConfig`` (defaults if None); ``options`` replace its fields
+    by name (``format``, ``sequence``, ``topic``, ``gt_topic``, ``poses``,
+    ``kitti_vertical_correction_deg``). The format is guessed from ``path`` unless
+    ``format`` is set (module doc). Raises ``InputError`` for a missing path, an unknown
+    format, an undetectable format, or an option that the chosen reader does not take.
+    The frame range (``first_frame``, ``max_frames``) is not the reader's: see
+    :func:`frame_range`.
     """
+    from flowslam.config.pipeline import validated
+
+    base = (config or DatasetConfig()).model_dump()
+    c = validated(DatasetConfig, {**base, **options}, None) if options else (config or DatasetConfig())
     path = Path(path)
     if not path.exists():
         raise InputError(path, "does not exist")
     formats = _formats()
+    fmt = c.format
     if fmt is not None:
         chosen = next((f for f in formats if f.name == fmt), None)
         if chosen is None:
@@ -130,18 +140,24 @@ def open_dataset(
         chosen = next((f for f in formats if f.detect(path)), None)
         if chosen is None:
             raise InputError(
-                path, f"cannot tell the dataset format; pass fmt= (one of {', '.join(f.name for f in formats)})"
+                path, f"cannot tell the dataset format; set dataset.format (one of {', '.join(f.name for f in formats)})"
             )
-    options = dict(
-        topic=topic, gt_topic=gt_topic, sequence=sequence, poses=poses,
-        vertical_correction_deg=vertical_correction_deg,
-    )
-    given = {k: v for k, v in options.items() if v is not None}
+    given = {
+        kw: getattr(c, field) for field, kw in _READER_OPTIONS.items() if getattr(c, field) is not None
+    }
     if chosen.options is not None:
-        unused = sorted(set(given) - set(chosen.options))
+        unused = sorted(field for field, kw in _READER_OPTIONS.items() if kw in given and kw not in chosen.options)
         if unused:
             raise InputError(
                 path, f"option(s) {', '.join(unused)} do not apply to the {chosen.name} format"
-                + ("" if fmt else " (detected; pass fmt= to choose another)"),
+                + ("" if fmt else " (detected; set dataset.format to choose another)"),
             )
     return chosen.opener(path, **given)
+
+
+def frame_range(n: int, config: DatasetConfig | None = None) -> range:
+    """Indices of a dataset of ``n`` scans that a run processes: ``first_frame`` on, at
+    most ``max_frames`` of them."""
+    c = config or DatasetConfig()
+    stop = n if c.max_frames is None else min(n, c.first_frame + c.max_frames)
+    return range(c.first_frame, stop)

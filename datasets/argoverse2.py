@@ -16,7 +16,8 @@ displacement including ego motion, i.e. flowslam's ``gt_flow`` convention. They
 sit on frame *i* (one row per point of sweep *i*, checked). Looked up as
 ``flow_labels/<timestamp_ns>.feather`` for sweep *i*, or the single
 ``flow_labels.feather`` at the log root, which labels the first sweep (the layout
-of the av2-api test logs). ``is_ground_0`` goes to ``Frame.extras["is_ground"]``.
+of the av2-api test logs). ``is_ground_0`` goes to ``Frame.extras["is_ground"]``, the classes also to
+``Frame.extras["av2_category"]`` (what the scene-flow metrics read from every reader).
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ log = logging.getLogger(__name__)
 LIDAR_COLUMNS = ("x", "y", "z", "intensity", "offset_ns")
 POSE_COLUMNS = ("qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")
 FLOW_COLUMNS = ("flow_tx_m", "flow_ty_m", "flow_tz_m", "classes", "dynamic", "is_ground_0")
-POINT_EXTRAS = ("laser_number", "is_ground")
+POINT_EXTRAS = ("laser_number", "is_ground", "av2_category")
 """Per-point arrays this reader keeps in ``Frame.extras``."""
 
 
@@ -178,6 +179,7 @@ class Argoverse2Log(Dataset):
             frame.gt_dynamic = cols["dynamic"].astype(bool)
         if "classes" in cols:
             frame.gt_class = cols["classes"].astype(np.int64)
+            frame.extras["av2_category"] = frame.gt_class  # already AV2 categories
         if "is_ground_0" in cols:
             frame.extras["is_ground"] = cols["is_ground_0"].astype(bool)
         frame.extras["flow_file"] = str(path)

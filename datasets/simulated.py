@@ -14,7 +14,10 @@ is the KITTI reader with the simulator's conventions:
   in the sensor frame of that instant), ``gt_dynamic`` (world speed > 0.5 m/s),
   ``gt_class`` (ids in ``manifest["classes"]``), ``gt_instance`` (-1 = ground);
   ``extras`` gets ``flow_compensated`` (the object's own motion in the point's sensor
-  frame), ``beam`` and ``column``;
+  frame), ``beam`` and ``column``, and the labels the scene-flow metrics read
+  (``simulated_to_av2``): ``av2_category`` (car -> REGULAR_VEHICLE, truck -> TRUCK,
+  cyclist -> BICYCLIST, pedestrian -> PEDESTRIAN, everything else background) and
+  ``is_ground`` (road, sidewalk, terrain);
 - ``point_times`` (s after the frame timestamp) only when the sequence was simulated
   with motion distortion; then each point is in the sensor frame at its own firing time,
   as a raw spinning LiDAR reports it (``deskewed(i)`` re-expresses frame i in the sensor
@@ -33,6 +36,25 @@ import numpy as np
 from flowslam.datasets.frame import Frame
 from flowslam.datasets.kitti import KittiOdometry
 from flowslam.errors import InputError
+
+_SIM_TO_AV2 = {"car": "REGULAR_VEHICLE", "truck": "TRUCK", "cyclist": "BICYCLIST", "pedestrian": "PEDESTRIAN"}
+_SIM_GROUND = ("road", "sidewalk", "terrain")
+
+
+def simulated_to_av2(classes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Argoverse 2 category index per point, is_ground) for simulator class ids."""
+    from flowslam.sceneflow.metrics import AV2_CATEGORIES
+    from flowslam.simulation.labels import CLASS_NAMES
+
+    lut = np.zeros(max(CLASS_NAMES) + 1, dtype=np.int64)
+    ground = np.zeros(max(CLASS_NAMES) + 1, dtype=bool)
+    for cid, name in CLASS_NAMES.items():
+        if name in _SIM_TO_AV2:
+            lut[cid] = AV2_CATEGORIES.index(_SIM_TO_AV2[name])
+        ground[cid] = name in _SIM_GROUND
+    c = np.asarray(classes, dtype=np.int64)
+    return lut[c], ground[c]
+
 
 MANIFEST = "manifest.json"
 FORMAT = "flowslam-simulation"
@@ -107,6 +129,7 @@ class SimulatedSequence(KittiOdometry):
         frame.extras["flow_compensated"] = arrays["flow_compensated"].astype(np.float64)
         frame.extras["beam"] = arrays["beam"].astype(np.int64)
         frame.extras["column"] = arrays["column"].astype(np.int64)
+        frame.extras["av2_category"], frame.extras["is_ground"] = simulated_to_av2(frame.gt_class)
         return frame
 
     @cached_property

@@ -98,7 +98,7 @@ def run(
     frontend: Optional[str] = typer.Option(None, "--frontend", "-f", help="Frontend name (default kiss-icp)."),
     backend: Optional[str] = typer.Option(None, "--backend", "-b", help="Backend name (default odometry)."),
     variant: Optional[str] = typer.Option(
-        None, "--variant", help="isam2 backend: a-loam (odometry only) or s-loam (loop closure, default)."),
+        None, "--variant", help="a-loam (odometry only) or s-loam (loop closure, default; backends that take loops)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (see `flowslam config`)."),
     output_dir: Optional[Path] = typer.Option(None, "--output-dir", "-o", help="Where run folders go (default results/)."),
     fmt: Optional[str] = typer.Option(None, "--format", help="Force the reader: kitti, folder, rosbag, argoverse2."),
@@ -119,10 +119,9 @@ def run(
 
         cfg = load_config(
             config,
-            frontend=frontend, backend=backend, output_dir=output_dir and str(output_dir),
+            frontend=frontend, backend=backend, output_dir=output_dir and str(output_dir), variant=variant,
             **{
-                "isam2.variant": variant,
-                "ssf.weights": weights and str(weights),
+                "ssf.network.weights": weights and str(weights),
                 "dataset.format": fmt, "dataset.topic": topic, "dataset.gt_topic": gt_topic,
                 "dataset.sequence": sequence_id, "dataset.poses": poses and str(poses),
                 "dataset.kitti_vertical_correction_deg": kitti_correction,
@@ -290,10 +289,11 @@ def flow_eval_command(
     sequence: Path = typer.Argument(..., help="A sequence with GT flow (simulated, Argoverse 2 with flow labels)."),
     frontend: str = typer.Option("ssf", "--frontend", "-f", help="Flow frontend to evaluate (ssf, gt-flow, gt)."),
     weights: Optional[Path] = typer.Option(None, "--weights", help="ssf: a weights file instead of the shipped one."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (its dataset.* and frontend sections apply)."),
     first: Optional[int] = typer.Option(None, "--first", help="First frame index."),
     max_frames: Optional[int] = typer.Option(None, "--max-frames", "-n", help="At most N frames."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the metrics as JSON."),
+    no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
 ):
     """Scene-flow metrics of a frontend in pipeline conditions: EPE3D, Acc, 3-way EPE, IoU."""
     with _user_errors():
@@ -301,22 +301,17 @@ def flow_eval_command(
         from rich.table import Table
 
         from flowslam.config import load_config
-        from flowslam.datasets import open_dataset
-        from flowslam.errors import InputError
-        from flowslam.registry import make_frontend
-        from flowslam.run import frame_range
-        from flowslam.sceneflow.flow_eval import evaluate_flow
+        from flowslam.flow_eval import evaluate_flow
 
         cfg = load_config(config, frontend=frontend, **{
-            "ssf.weights": weights and str(weights), "dataset.first_frame": first, "dataset.max_frames": max_frames})
-        dataset = open_dataset(sequence)
-        if dataset.gt_poses is None:
-            raise InputError(sequence, "flow-eval needs GT poses and GT flow")
-        frames = frame_range(len(dataset), cfg)
-        with _progress() as bar:
-            on_start, on_frame = _progress_callbacks(bar, f"flow-eval {frontend}")
-            on_start(len(frames))
-            result = evaluate_flow(dataset, make_frontend(frontend, cfg), frames, on_frame)
+            "ssf.network.weights": weights and str(weights), "dataset.first_frame": first,
+            "dataset.max_frames": max_frames})
+        if no_progress:
+            result = evaluate_flow(sequence, cfg)
+        else:
+            with _progress() as bar:
+                on_start, on_frame = _progress_callbacks(bar, f"flow-eval {frontend}")
+                result = evaluate_flow(sequence, cfg, on_start=on_start, on_frame=on_frame)
         table = Table(title=f"scene flow of {frontend} on {sequence} ({result['pairs']} pairs)")
         table.add_column("metric")
         table.add_column(frontend, justify="right")
@@ -339,7 +334,8 @@ def flow_eval_command(
 def train_command(
     data: list[Path] = typer.Argument(None, help="Training sequences with GT flow and poses (simulated, AV2)."),
     val: Optional[list[Path]] = typer.Option(None, "--val", help="Held-out validation sequence (repeatable)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="TrainConfig JSON (options override it)."),
+    config: Optional[Path] = typer.Option(
+        None, "--config", "-c", help="Run config YAML (its training: section) or a TrainConfig YAML/JSON; options override it."),
     out_dir: Optional[Path] = typer.Option(None, "--out-dir", "-o", help="Checkpoints and history go here."),
     preset: Optional[str] = typer.Option(None, "--preset", help="Model size: tiny (CPU) or full (GPU)."),
     frames: Optional[int] = typer.Option(None, "--frames", help="Input frames per sample (5 default; 2 works)."),
@@ -356,22 +352,17 @@ def train_command(
     export: Optional[Path] = typer.Option(None, "--export", help="Write the best checkpoint as a weights file."),
     no_progress: bool = typer.Option(False, "--no-progress"),
 ):
-    """Train the scene-flow network (multi-GPU/CPU: torchrun -m flowslam.sceneflow.train CONFIG.json)."""
+    """Train the scene-flow network (multi-GPU/CPU: torchrun -m flowslam.sceneflow.network.train CONFIG.json)."""
     with _user_errors():
-        import json as _json
-
+        from flowslam.config import load_training_config
         from flowslam.errors import InputError
-        from flowslam.sceneflow.train import TrainConfig, export_weights, train
+        from flowslam.sceneflow.network.train import export_weights, train
 
-        base = _json.loads(config.read_text()) if config is not None else {}
-        given = dict(data=data or None, val=val or None, out_dir=out_dir, model_preset=preset, num_frames=frames,
-                     max_points=max_points, epochs=epochs, batch_size=batch_size, lr=lr,
-                     max_minutes=max_minutes, seed=seed, init_weights=init_weights)
-        base.update({k: v for k, v in given.items() if v is not None})
-        try:
-            cfg = TrainConfig.model_validate(base)
-        except ValueError as e:
-            raise InputError(config, str(e).splitlines()[0]) from None
+        cfg = load_training_config(
+            config, data=data or None, val=val or None, out_dir=out_dir, model_preset=preset, num_frames=frames,
+            max_points=max_points, epochs=epochs, batch_size=batch_size, lr=lr, max_minutes=max_minutes,
+            seed=seed, init_weights=init_weights,
+        )
         if not cfg.data:
             raise InputError(None, "no training data: pass sequence folders (e.g. from `flowslam simulate`)")
         result = train(cfg, resume=resume, progress=not no_progress)

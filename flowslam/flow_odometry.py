@@ -15,15 +15,9 @@ measurement handed to the backend is its inverse ``T_prev_curr = inv(T_curr_prev
 Covariance of the inverse
 -------------------------
 The registration reports ``Sigma`` in the right-perturbation tangent of
-``T = T_curr_prev``: ``T_true = T Exp(xi)``, ``xi ~ N(0, Sigma)``, ``xi = [omega, v]``.
-Then, exactly (``T Exp(xi) T^-1 = Exp(Ad_T xi)``)::
-
-    T_true^-1 = Exp(-xi) T^-1 = T^-1 (T Exp(-xi) T^-1) = T^-1 Exp(-Ad_T xi)
-
-so the perturbation of the inverse is ``eta = -Ad_T xi`` and
-``Cov(eta) = Ad_T Sigma Ad_T^T``, with GTSAM's adjoint in ``[rot, trans]`` order
-``Ad_T = [[R, 0], [hat(t) R, R]]`` (``R, t`` of ``T_curr_prev``;
-``gtsam.Pose3.AdjointMap``). Checked against GTSAM in ``tests/test_flow_odometry.py``.
+``T = T_curr_prev``; the measurement's covariance in the tangent of ``T_prev_curr`` is
+``Ad_T Sigma Ad_T^T`` (:func:`flowslam.registration.inverse_covariance`, derivation
+there).
 
 Realistic covariance (the choice made here)
 -------------------------------------------
@@ -44,38 +38,32 @@ object; labels are rounded jointly), so two corrections are applied, in this ord
 
 Degeneracy and fallback
 -----------------------
-The estimate falls back to the **constant-velocity prediction** (the last registered
-``T_prev_curr``, its twist scaled by the ratio of scan intervals when both are known)
-with an inflated covariance when
+The estimate falls back to the **constant-velocity prediction** of
+:mod:`flowslam.motion_model` (the last registered ``T_prev_curr``, its twist scaled by
+the ratio of scan intervals when both are known, with an inflated covariance; the
+identity with ``diag(no_prior_std^2)`` before any measurement) when
 
 - fewer than ``min_static_points`` usable (finite, static, non-zero weight) pairs
   remain (code ``few_points``);
 - the normal equations are ill-conditioned (code ``ill_conditioned``): the condition
   number of the scaled 6x6 information exceeds its threshold. Two informations are
-  checked, both about the centroid of the used points with rotations scaled by ``L``
-  = the RMS distance of the points from that centroid (so a rotation ``omega`` counts as
-  the displacement ``L omega`` it causes, and both blocks are in metres):
+  checked (:mod:`flowslam.registration.degeneracy`):
 
   * *correspondence*: the point-to-point information of the flow pairs (singular only
     for (nearly) collinear points; threshold ``max_condition_correspondence``);
-  * *geometry*: the point-to-plane information ``sum a a^T``, ``a = [(c x n)/L, n]``,
-    of planar surfels (``geometry_voxel_size`` voxels, default 2 m, normal ``n`` by PCA,
-    weight = planarity, one vote per voxel; on at most 10000 of the used points). This
-    is what the scene's geometry can tell a flow estimator: in a corridor no surface
-    faces along the corridor, so the along-axis motion is unobservable to any
-    geometry-based flow (aperture problem) even though the flow pairs themselves look
-    well conditioned. Real scans score 7-20 (AV2, KITTI; 3k to 30k points), a
-    two-wall corridor with floor > 600; threshold ``max_condition`` (default 100).
+  * *geometry*: the point-to-plane information of planar surfels
+    (``geometry_voxel_size`` voxels, default 2 m; on at most 10000 of the used points).
+    This is what the scene's geometry can tell a flow estimator: in a corridor the
+    along-axis motion is unobservable to any geometry-based flow (aperture problem)
+    even though the flow pairs themselves look well conditioned. Real scans score 7-20,
+    a two-wall corridor with floor > 600; threshold ``max_condition`` (default 100).
     Scenes with fewer than 6 planar surfels count as degenerate (unstructured random
     points: switch the check off with ``check_geometry: false``).
 - the registration fails (``degenerate``) or keeps too few inliers (``few_inliers``).
 
-The fallback covariance is ``fallback_inflation * C_last + m * diag(fallback_std^2)``
-with ``C_last`` the covariance of the last registered measurement and ``m`` the number
-of consecutive fallbacks (a random walk on the velocity). Without any previous
-measurement the prediction is the identity (standing still) with
-``diag(no_prior_std^2)``. Fallbacks are counted by code (:attr:`FlowToPose.fallbacks`,
-:func:`summarize_fallbacks` for the run report).
+Fallbacks are counted by code (:attr:`FlowToPose.fallbacks`; codes in
+:data:`flowslam.fallbacks.FALLBACK_CODES`, :func:`flowslam.fallbacks.summarize_fallbacks`
+for the run report).
 
 Speed
 -----
@@ -101,92 +89,25 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from flowslam import geometry
-from flowslam.mapping import voxel_ids
-from flowslam.registration import RegistrationResult, irls, ransac
+from flowslam.config.odometry import FlowOdometryConfig
+from flowslam.motion_model import ConstantVelocityPredictor
+from flowslam.registration import (
+    RegistrationResult,
+    correspondence_condition,
+    geometry_condition,
+    inverse_covariance,
+    irls,
+    ransac,
+)
 from flowslam.registration.closed_form import squared_residuals
-from flowslam.registration.kernels import get_kernel, kernel_names
+from flowslam.registration.kernels import get_kernel
 from flowslam.registration.robust import INLIER_FACTOR
 
 log = logging.getLogger(__name__)
 
-__all__ = [
-    "FlowOdometryConfig",
-    "FlowPoseEstimate",
-    "FlowToPose",
-    "ConstantVelocityPredictor",
-    "inverse_covariance",
-    "correspondence_condition",
-    "geometry_condition",
-    "summarize_fallbacks",
-    "FALLBACK_CODES",
-]
-
-#: Fallback codes and what they mean (keys of :attr:`FlowToPose.fallbacks`).
-FALLBACK_CODES = {
-    "few_points": "fewer usable static points than min_static_points",
-    "ill_conditioned": "condition number of the scaled information above the threshold",
-    "degenerate": "registration failed (collinear points, singular covariance)",
-    "few_inliers": "too few pairs agree with the registered motion",
-    "no_flow": "the frame has no flow (frontend-reported)",
-}
-
-
-class FlowOdometryConfig(BaseModel):
-    """Options of :class:`FlowToPose` (YAML section ``flow_odometry``). Metres, seconds,
-    radians except ``_deg`` fields."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    kernel: str = "cauchy"
-    """Final IRLS kernel ('huber', 'cauchy', 'geman_mcclure', 'l2'); a Huber pass always runs first."""
-    max_points: int = Field(30000, ge=0)
-    """Pairs used for registration (seeded random subsample); 0 = all."""
-    seed: int = 0
-    min_static_points: int = Field(50, ge=3)
-    """Fewer usable (finite, static) pairs than this -> constant-velocity fallback."""
-    inlier_threshold_m: float = Field(0.1, gt=0)
-    """Residual bound (m) for the inlier share, the RANSAC threshold and the MSAC comparison."""
-    ransac_below_inlier_ratio: float = Field(0.5, ge=0, le=1)
-    """Run RANSAC when the IRLS solution has a smaller inlier share than this."""
-    min_inlier_ratio: float = Field(0.2, ge=0, le=1)
-    """Final inlier share below this -> fallback (``few_inliers``)."""
-    ransac_max_iterations: int = Field(1000, ge=1)
-    check_geometry: bool = True
-    """Run the point-to-plane (corridor) degeneracy check."""
-    max_condition: float = Field(100.0, gt=1)
-    """Geometry (point-to-plane surfel) condition number above which the scan is degenerate."""
-    max_condition_correspondence: float = Field(1e4, gt=1)
-    """Point-to-point condition number above which the pairs are degenerate (near-collinear)."""
-    geometry_voxel_size: float = Field(2.0, gt=0)
-    """Voxel (m) of the surfels of the geometry check."""
-    effective_samples: float = Field(100.0, gt=0)
-    """Covariance x max(1, n_inliers / effective_samples): flow errors are correlated."""
-    min_rotation_std_deg: float = Field(0.01, ge=0)
-    """Added covariance floor, rotation 1-sigma per axis (deg)."""
-    min_translation_std_m: float = Field(0.005, ge=0)
-    """Added covariance floor, translation 1-sigma per axis (m)."""
-    fallback_inflation: float = Field(10.0, ge=1)
-    """Variance multiplier of the last measurement covariance for a constant-velocity step."""
-    fallback_rotation_std_deg: float = Field(0.5, ge=0)
-    """Constant-velocity model error per fallback step, rotation 1-sigma (deg)."""
-    fallback_translation_std_m: float = Field(0.2, ge=0)
-    """Constant-velocity model error per fallback step, translation 1-sigma (m)."""
-    no_prior_rotation_std_deg: float = Field(10.0, gt=0)
-    """Fallback with no earlier measurement (identity motion): rotation 1-sigma (deg)."""
-    no_prior_translation_std_m: float = Field(2.0, gt=0)
-    """... and translation 1-sigma (m)."""
-
-    @field_validator("kernel")
-    @classmethod
-    def _known_kernel(cls, v: str) -> str:
-        try:
-            get_kernel(v)
-        except (ValueError, KeyError):
-            raise ValueError(f"unknown kernel {v!r}; choose one of {kernel_names()}") from None
-        return v
+__all__ = ["FlowPoseEstimate", "FlowToPose"]
 
 
 @dataclass
@@ -208,124 +129,12 @@ class FlowPoseEstimate:
     stats: dict = field(default_factory=dict)
 
 
-def inverse_covariance(T: np.ndarray, covariance: np.ndarray) -> np.ndarray:
-    """Covariance of ``inv(T)`` from the covariance of ``T`` (both right-perturbation,
-    ``[rot, trans]``): ``Ad_T Sigma Ad_T^T`` (derivation in the module doc)."""
-    A = geometry.adjoint(T)
-    C = A @ covariance @ A.T
-    return 0.5 * (C + C.T)
-
-
 #: IRLS stops when an update moves less than this (rad and m): far below any flow noise.
 _TOLERANCE = 1e-7
 #: The Huber pass only initialises the redescending one.
 _HUBER_TOLERANCE = 1e-5
 #: The geometry check uses at most this many of the registered points (a strided subset).
 GEOMETRY_SAMPLES = 10000
-
-
-def _scaled_condition(H: np.ndarray) -> float:
-    """Condition number of a symmetric PSD 6x6 matrix (inf when singular)."""
-    e = np.linalg.eigvalsh(H)
-    if not np.all(np.isfinite(e)) or e[-1] <= 0:
-        return float("inf")
-    return float(e[-1] / e[0]) if e[0] > 1e-15 * e[-1] else float("inf")
-
-
-def correspondence_condition(src: np.ndarray) -> float:
-    """Condition number of the point-to-point information of pairs with sources ``src``
-    (N,3), about their centroid, rotation scaled by the RMS radius ``L`` (module doc).
-
-    Per point the (centred) information is ``[[|p|^2 I - p p^T, .], [., I]] / L^2``;
-    about the centroid the cross block vanishes.
-    """
-    c = np.ascontiguousarray(src.T)  # (3,N): einsum over contiguous rows, no BLAS
-    c -= c.mean(axis=1, keepdims=True)
-    S2 = np.einsum("in,jn->ij", c, c) / c.shape[1]
-    L2 = float(np.trace(S2))
-    if not L2 > 0:
-        return float("inf")
-    H = np.zeros((6, 6))
-    H[:3, :3] = (L2 * np.eye(3) - S2) / L2
-    H[3:, 3:] = np.eye(3)
-    return _scaled_condition(H)
-
-
-def geometry_condition(points: np.ndarray, voxel_size: float = 2.0, min_voxel_points: int = 5) -> float:
-    """Condition number of the point-to-plane information of the scene's surfels.
-
-    Points (N,3, m) are grouped in ``voxel_size`` voxels; each voxel with at least
-    ``min_voxel_points`` points gives a surfel: centroid ``m`` (relative to the
-    points' centroid), normal ``n`` (smallest principal axis), planarity
-    ``(l2 - l3) / l1`` (eigenvalues descending; 0 for lines and scatter, 1 for a
-    plane). ``H = sum_v planarity_v a_v a_v^T / sum planarity``, ``a = [(m x n)/L, n]``,
-    ``L`` the RMS radius of the points. ``inf`` if fewer than 6 surfels.
-    """
-    c0 = points.mean(axis=0)
-    pc = points - c0
-    L = float(np.sqrt(np.einsum("ni,ni->", pc, pc) / len(pc)))
-    if not L > 0:
-        return float("inf")
-    inverse, counts = voxel_ids(pc, voxel_size)
-    V = len(counts)
-    S1 = np.stack([np.bincount(inverse, pc[:, i], V) for i in range(3)], axis=1)
-    S2 = np.empty((V, 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            S2[:, i, j] = S2[:, j, i] = np.bincount(inverse, pc[:, i] * pc[:, j], V)
-    ok = counts >= min_voxel_points
-    if np.count_nonzero(ok) < 6:
-        return float("inf")
-    n_v = counts[ok].astype(np.float64)
-    m = S1[ok] / n_v[:, None]
-    C = S2[ok] / n_v[:, None, None] - np.einsum("vi,vj->vij", m, m)
-    w, vec = np.linalg.eigh(C)  # ascending
-    normal = vec[:, :, 0]
-    planarity = (w[:, 1] - w[:, 0]) / np.maximum(w[:, 2], 1e-12)
-    wsum = float(planarity.sum())
-    if not wsum > 0:
-        return float("inf")
-    a = np.hstack([np.cross(m, normal) / L, normal])
-    H = np.einsum("v,vi,vj->ij", planarity, a, a) / wsum
-    return _scaled_condition(H)
-
-
-class ConstantVelocityPredictor:
-    """Holds the last registered measurement and predicts the next one from it.
-
-    ``predict(dt)`` returns ``T_prev_curr`` of the last registration, its twist scaled
-    by ``dt / dt_last`` when both intervals are known (constant velocity in time, not
-    per scan), and the covariance of a prediction ``misses`` steps after it (module doc).
-    """
-
-    def __init__(self, config: FlowOdometryConfig):
-        self.config = config
-        self.T_prev_curr: np.ndarray | None = None
-        self.covariance: np.ndarray | None = None
-        self.dt: float | None = None
-        self.misses = 0
-        """Consecutive predictions since the last registered measurement."""
-
-    def update(self, T_prev_curr: np.ndarray, covariance: np.ndarray, dt: float | None) -> None:
-        """Record a registered (non-fallback) measurement."""
-        self.T_prev_curr = np.array(T_prev_curr, dtype=np.float64)
-        self.covariance = np.array(covariance, dtype=np.float64)
-        self.dt = dt if dt is not None and dt > 0 else None
-        self.misses = 0
-
-    def predict(self, dt: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(T_prev_curr, covariance) of the next scan pair; counts one more miss."""
-        cfg = self.config
-        self.misses += 1
-        if self.T_prev_curr is None:
-            rot, trans = np.deg2rad(cfg.no_prior_rotation_std_deg), cfg.no_prior_translation_std_m
-            return np.eye(4), np.diag([rot**2] * 3 + [trans**2] * 3)
-        T = self.T_prev_curr
-        if dt is not None and dt > 0 and self.dt is not None:
-            T = geometry.exp_se3(geometry.log_se3(T) * (dt / self.dt))
-        rot, trans = np.deg2rad(cfg.fallback_rotation_std_deg), cfg.fallback_translation_std_m
-        cov = cfg.fallback_inflation * self.covariance + self.misses * np.diag([rot**2] * 3 + [trans**2] * 3)
-        return T.copy(), cov
 
 
 def _msac_cost(residuals: np.ndarray, threshold: float) -> float:
@@ -343,7 +152,7 @@ class FlowToPose:
         self.config = config or FlowOdometryConfig()
         self.predictor = ConstantVelocityPredictor(self.config)
         self.fallbacks: Counter[str] = Counter()
-        """Fallbacks so far, by code (see ``FALLBACK_CODES``)."""
+        """Fallbacks so far, by code (see :data:`flowslam.fallbacks.FALLBACK_CODES`)."""
         self.estimates = 0
         """Calls to :meth:`estimate` / :meth:`fallback` so far."""
 
@@ -487,18 +296,11 @@ class FlowToPose:
     def fallback_count(self) -> int:
         return int(sum(self.fallbacks.values()))
 
-    def reset(self) -> None:
-        """Forget the predictor state and the counts (new sequence)."""
-        self.predictor = ConstantVelocityPredictor(self.config)
-        self.fallbacks.clear()
-        self.estimates = 0
-
     # -- internals --------------------------------------------------------------
 
     def _floor(self) -> np.ndarray:
-        rot = np.deg2rad(self.config.min_rotation_std_deg)
-        trans = self.config.min_translation_std_m
-        return np.diag([rot**2] * 3 + [trans**2] * 3)
+        return geometry.pose_covariance(np.deg2rad(self.config.min_rotation_std_deg),
+                                        self.config.min_translation_std_m)
 
     def _register(
         self, src: np.ndarray, dst: np.ndarray, w: np.ndarray | None
@@ -537,10 +339,3 @@ class FlowToPose:
         return FlowPoseEstimate(
             T_prev_curr, cov, geometry.inv(T_prev_curr), np.zeros(n, dtype=bool), True, reason, stats
         )
-
-
-def summarize_fallbacks(frontend_stats: list[dict]) -> dict:
-    """Fallback counts for the run report from the per-frame ``FrontendOutput.stats``:
-    ``{"frames": n, "fallbacks": k, "by_reason": {code: count}}``."""
-    codes = Counter(s.get("fallback_code", "unknown") for s in frontend_stats if s.get("fallback"))
-    return {"frames": len(frontend_stats), "fallbacks": int(sum(codes.values())), "by_reason": dict(codes)}

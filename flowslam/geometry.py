@@ -42,6 +42,8 @@ __all__ = [
     "to_quat_xyzw",
     "from_euler",
     "is_se3",
+    "pose_sigmas",
+    "pose_covariance",
 ]
 
 
@@ -191,3 +193,13 @@ def is_se3(T: np.ndarray, tol: float = 1e-6) -> bool:
         and abs(np.linalg.det(R) - 1.0) < tol
         and np.allclose(T[3], [0, 0, 0, 1], atol=tol)
     )
+
+
+def pose_sigmas(rotation_sigma_rad: float, translation_sigma_m: float) -> np.ndarray:
+    """(6,) 1-sigma vector in GTSAM's Pose3 tangent order: 3x rotation (rad), 3x translation (m)."""
+    return np.array([rotation_sigma_rad] * 3 + [translation_sigma_m] * 3, dtype=np.float64)
+
+
+def pose_covariance(rotation_sigma_rad: float, translation_sigma_m: float) -> np.ndarray:
+    """6x6 diagonal covariance [rot rad, trans m] with the same 1-sigma on every axis of each part."""
+    return np.diag(pose_sigmas(rotation_sigma_rad, translation_sigma_m) ** 2)

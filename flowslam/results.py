@@ -86,9 +86,9 @@ def write_results(
     gt: Trajectory | None,
     metrics: dict | None,
     run_info: dict,
-    plot: bool = True,
 ) -> list[Path]:
-    """Write every output of a run (see module doc); returns the files written."""
+    """Write every output of a run (see module doc); returns the files written. The top
+    view is drawn when ``config.output.plot``."""
     written: list[Path] = []
 
     def out(name: str) -> Path:
@@ -111,7 +111,7 @@ def write_results(
                  if lc.i in position and lc.j in position]
         if result.loops:
             write_loops_csv(out("loops.csv"), result.loops)
-        if plot and len(est) > 1:
+        if config.output.plot and len(est) > 1:
             from flowslam.plotting import plot_top_view
 
             plot_top_view(

@@ -18,8 +18,8 @@ import numpy as np
 
 from flowslam import __version__
 from flowslam.config import PipelineConfig
-from flowslam.datasets import open_dataset
-from flowslam.flow_odometry import summarize_fallbacks
+from flowslam.datasets import frame_range, open_dataset
+from flowslam.fallbacks import summarize_fallbacks
 from flowslam.interfaces import Frontend
 from flowslam.loop_closure import make_loop_closer
 from flowslam.mapping import StaticMapBuilder
@@ -43,13 +43,6 @@ class RunOutcome:
         """Re-raise the error that stopped the run early, if any."""
         if self.result.error is not None:
             raise self.result.error
-
-
-def frame_range(n: int, config: PipelineConfig) -> range:
-    """Dataset indices a run processes: ``dataset.first_frame`` on, at most ``max_frames``."""
-    first = config.dataset.first_frame
-    stop = n if config.dataset.max_frames is None else min(n, first + config.dataset.max_frames)
-    return range(first, stop)
 
 
 def _ground_truth(dataset, result: RunResult) -> Trajectory | None:
@@ -103,13 +96,8 @@ def run_sequence(
     ``frontend`` overrides ``config.frontend`` with an instance (e.g. a replay of
     recorded measurements); ``tag`` names the results folder.
     """
-    dsc = config.dataset
-    dataset = open_dataset(
-        path, fmt=dsc.format, topic=dsc.topic, gt_topic=dsc.gt_topic,
-        sequence=dsc.sequence, poses=dsc.poses,
-        vertical_correction_deg=dsc.kitti_vertical_correction_deg,
-    )
-    frames = frame_range(len(dataset), config)
+    dataset = open_dataset(path, config.dataset)
+    frames = frame_range(len(dataset), config.dataset)
     frontend = frontend or make_frontend(config.frontend, config)
     backend = make_backend(config.backend, config)
     run_dir = create_results_dir(
@@ -119,7 +107,7 @@ def run_sequence(
     sinks = _OutputSinks(config)
     if on_start is not None:
         on_start(len(frames))
-    loop_closer = make_loop_closer(config) if config.backend == "isam2" else None
+    loop_closer = make_loop_closer(config.loop_closure) if getattr(backend, "accepts_loops", False) else None
     result = run_pipeline(
         dataset, frontend, backend, frames, on_frame,
         loop_closer=loop_closer, on_output=sinks.on_output,
@@ -138,6 +126,7 @@ def run_sequence(
         "dataset": dataset.describe(),
         "frontend": config.frontend,
         "backend": config.backend,
+        "loop_closure": loop_closer is not None,
         "frames_requested": len(frames),
         "frames_processed": len(result.indices),
         "first_index": result.indices[0] if result.indices else None,

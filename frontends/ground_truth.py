@@ -26,7 +26,8 @@ import numpy as np
 
 from flowslam.datasets.frame import Frame
 from flowslam.errors import InputError
-from flowslam.flow_odometry import FlowOdometryConfig, FlowToPose
+from flowslam.config import FlowOdometryConfig
+from flowslam.flow_odometry import FlowToPose
 from flowslam.interfaces import FrontendOutput
 
 __all__ = ["GroundTruthFlowFrontend", "make_gt_frontend", "make_gt_flow_frontend", "NO_FLOW_MESSAGE"]

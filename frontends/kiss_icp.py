@@ -17,11 +17,6 @@ from flowslam.datasets.frame import Frame
 from flowslam.interfaces import FrontendOutput
 
 
-def fixed_covariance(rotation_std_rad: float, translation_std_m: float) -> np.ndarray:
-    """6x6 diagonal covariance in [omega, v] order from 1-sigma values (rad, m)."""
-    return np.diag([rotation_std_rad**2] * 3 + [translation_std_m**2] * 3)
-
-
 class KissIcpFrontend:
     """Wraps ``kiss_icp.kiss_icp.KissICP``; one instance per sequence (it keeps a map)."""
 
@@ -39,9 +34,7 @@ class KissIcpFrontend:
         kiss_config.mapping.voxel_size = options.voxel_size or options.max_range / 100.0
         kiss_config.mapping.max_points_per_voxel = options.max_points_per_voxel
         self._odometry = KissICP(kiss_config)
-        self._covariance = fixed_covariance(
-            np.deg2rad(options.rotation_std_deg), options.translation_std_m
-        )
+        self._covariance = geometry.pose_covariance(np.deg2rad(options.rotation_std_deg), options.translation_std_m)
         self._last_pose: np.ndarray | None = None
 
     def process(self, frame: Frame) -> FrontendOutput:

@@ -88,3 +88,14 @@ def test_isam2_a_loam_equals_odometry_backend(kitti_run, kitti_extract, tmp_path
     np.testing.assert_allclose(isam.poses, odo.poses, atol=1e-6)
     run = json.loads((tmp_path / "latest" / "run.json").read_text())
     assert run["backend_stats"]["scans"] == 16 and run["loop_closures"] == 0
+    assert run["loop_closure"] is False  # a-loam: no loop closer was built
+
+
+def test_output_plot_off_writes_no_top_view(kitti_extract, tmp_path):
+    config = tmp_path / "c.yaml"
+    config.write_text("output: {plot: false, static_map: false}\n")
+    proc = flowslam("run", "--no-progress", "-n", "3", "-c", config, "-o", tmp_path / "r", kitti_extract)
+    assert proc.returncode == 0, proc.stderr
+    latest = tmp_path / "r" / "latest"
+    assert (latest / "trajectory_kitti.txt").is_file()
+    assert not (latest / "trajectory_topview.png").exists() and not (latest / "static_map.ply").exists()

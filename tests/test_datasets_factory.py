@@ -64,7 +64,7 @@ def test_detects_scan_folder_and_fmt_override(small_scan, kitti_extract: Path, t
     ds = open_dataset(tmp_path)
     assert ds.name == "folder" and len(ds) == 2
     # the KITTI velodyne folder read as a plain folder of .bin scans
-    ds = open_dataset(kitti_extract / "sequences/00/velodyne", fmt="folder")
+    ds = open_dataset(kitti_extract / "sequences/00/velodyne", format="folder")
     assert ds.name == "folder" and len(ds) == 16 and ds.gt_poses is None
 
 
@@ -73,12 +73,12 @@ def test_errors(kitti_extract: Path, tmp_path: Path):
         open_dataset(tmp_path / "missing")
     assert str(err.value) == f"{tmp_path / 'missing'}: does not exist"
     with pytest.raises(InputError, match=r"unknown format 'nuscenes' \(available: rosbag, simulated, kitti, argoverse2, folder\)"):
-        open_dataset(kitti_extract, fmt="nuscenes")
+        open_dataset(kitti_extract, format="nuscenes")
     with pytest.raises(InputError, match=r"option\(s\) topic do not apply to the kitti format \(detected"):
         open_dataset(kitti_extract, topic="/points")
     notes = tmp_path / "notes.txt"
     notes.write_text("x")
-    with pytest.raises(InputError, match=r"notes\.txt: cannot tell the dataset format; pass fmt="):
+    with pytest.raises(InputError, match=r"notes\.txt: cannot tell the dataset format; set dataset.format"):
         open_dataset(notes)
     with pytest.raises(InputError, match=r"no scans \(\.bin/\.pcd/\.ply/\.npy\) found"):
         open_dataset(tmp_path)
@@ -113,7 +113,7 @@ def test_register_format(tmp_path: Path, monkeypatch):
     register_format("ring", _OneScan)
     with pytest.raises(InputError, match="cannot tell the dataset format"):
         open_dataset(f)
-    assert isinstance(open_dataset(f, fmt="ring"), _OneScan)
+    assert isinstance(open_dataset(f, format="ring"), _OneScan)
     assert available_formats().count("ring") == 1
 
 

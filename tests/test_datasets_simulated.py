@@ -41,8 +41,8 @@ def test_no_kitti_elevation_correction(sim):
     f = ds[1]
     assert np.array_equal(f.points, raw) and np.array_equal(f.intensity, inten)
     with pytest.raises(InputError, match="vertical_correction_deg do not apply"):
-        open_dataset(out, vertical_correction_deg=0.205)
-    kitti = open_dataset(out, fmt="kitti")  # the plain KITTI reader would correct it
+        open_dataset(out, kitti_vertical_correction_deg=0.205)
+    kitti = open_dataset(out, format="kitti")  # the plain KITTI reader would correct it
     assert not np.allclose(kitti[1].points, raw)
 
 

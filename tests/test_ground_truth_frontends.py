@@ -15,7 +15,8 @@ from flowslam.config import load_config
 from flowslam.datasets import open_dataset
 from flowslam.datasets.frame import Frame
 from flowslam.errors import InputError
-from flowslam.flow_odometry import FlowOdometryConfig, summarize_fallbacks
+from flowslam.config import FlowOdometryConfig
+from flowslam.fallbacks import summarize_fallbacks
 from flowslam.frontends.ground_truth import GroundTruthFlowFrontend, make_gt_flow_frontend, make_gt_frontend
 from flowslam.registry import make_frontend
 

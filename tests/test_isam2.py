@@ -17,7 +17,8 @@ import pytest
 from pydantic import ValidationError
 
 from flowslam import geometry
-from flowslam.backends.isam2 import Isam2Backend, Isam2Config, make_backend
+from flowslam.backends.isam2 import Isam2Backend, make_backend
+from flowslam.config import Isam2Config
 from flowslam.backends.odometry import OdometryBackend
 from flowslam.evaluation import ape
 from flowslam.interfaces import Backend
@@ -91,8 +92,8 @@ def test_chain_without_loops_is_exactly_the_composition(gt):
     odometry, _ = _scenario(gt[:1500], seed=3)
     chained = geometry.compose_relatives(odometry)
     reference = _drive(OdometryBackend(), odometry)
-    for variant in ("a-loam", "s-loam"):
-        backend = _drive(Isam2Backend(Isam2Config(variant=variant)), odometry)
+    for config in (Isam2Config(), Isam2Config(factorization="qr")):
+        backend = _drive(Isam2Backend(config), odometry)
         assert isinstance(backend, Backend) and backend.name == "isam2"
         traj = backend.trajectory()
         assert traj.shape == (1500, 4, 4)
@@ -102,15 +103,6 @@ def test_chain_without_loops_is_exactly_the_composition(gt):
         np.testing.assert_allclose(backend.latest_pose(), traj[-1], atol=1e-12)
         assert backend.indices == list(range(1500))
         assert backend.stats["median_update_ms"] < 5.0
-
-
-def test_a_loam_ignores_loops(gt):
-    odometry, _ = _scenario(gt[:400], seed=4)
-    backend = _drive(Isam2Backend(Isam2Config(variant="a-loam")), odometry)
-    before = backend.trajectory()
-    assert backend.add_loop(10, 390, np.eye(4), LOOP_COV) is None
-    assert backend.loops_ignored == 1 and backend.loops == []
-    np.testing.assert_array_equal(backend.trajectory(), before)
 
 
 # --------------------------------------------------------------------- loops
@@ -216,15 +208,15 @@ def test_config_and_factory():
     with pytest.raises(ValidationError):
         Isam2Config(bogus=1)
     with pytest.raises(ValidationError):
-        Isam2Config(variant="loam")
-    cfg = Isam2Config.model_validate(Isam2Config(variant="a-loam", cauchy_k=2.0).model_dump(mode="json"))
-    assert cfg.variant == "a-loam" and cfg.loop_closure.scan_context.sectors == 60
+        Isam2Config(factorization="lu")
+    cfg = Isam2Config.model_validate(Isam2Config(cauchy_k=2.0).model_dump(mode="json"))
+    assert cfg.cauchy_k == 2.0
 
     class WithSection:
         isam2 = cfg
 
     assert make_backend(WithSection()).config is cfg
-    assert make_backend(object()).config.variant == "s-loam"
+    assert make_backend(object()).config == Isam2Config()
 
 
 # --------------------------------------------------------------------- real KITTI extract
@@ -241,10 +233,11 @@ def test_kiss_icp_a_loam_equals_the_odometry_backend_on_real_kitti(kitti_extract
     dataset = open_dataset(kitti_extract)
     config = load_config()
     odo = run_pipeline(dataset, make_frontend("kiss-icp", config), OdometryBackend())
-    a_loam = run_pipeline(dataset, make_frontend("kiss-icp", config), Isam2Backend(Isam2Config(variant="a-loam")))
-    s_config = Isam2Config()
+    a_loam = run_pipeline(dataset, make_frontend("kiss-icp", config), Isam2Backend(Isam2Config()),
+                          loop_closer=make_loop_closer(load_config(variant="a-loam").loop_closure))
     s_loam = run_pipeline(
-        dataset, make_frontend("kiss-icp", config), Isam2Backend(s_config), loop_closer=make_loop_closer(s_config)
+        dataset, make_frontend("kiss-icp", config), Isam2Backend(Isam2Config()),
+        loop_closer=make_loop_closer(config.loop_closure),
     )
     for result in (odo, a_loam, s_loam):
         assert result.error is None and result.poses.shape == (16, 4, 4)
@@ -265,7 +258,7 @@ def test_chain_covariance_matches_gtsam_marginals():
     from flowslam import geometry
 
     rng = np.random.default_rng(4)
-    backend = Isam2Backend(Isam2Config(variant="a-loam"))
+    backend = Isam2Backend(Isam2Config())
     backend.add_odometry(0, None, None)
     covs = []
     for k in range(1, 30):

@@ -15,10 +15,11 @@ import pytest
 
 from flowslam import geometry
 from flowslam.interfaces import LoopCloser
-from flowslam.loop_closure import LoopClosureConfig, make_loop_closer
+from flowslam.config import LoopClosureConfig
+from flowslam.loop_closure import make_loop_closer
 from flowslam.loop_closure import scan_context as sc
 from flowslam.loop_closure.candidates import CandidateIndex
-from flowslam.loop_closure.config import ScanContextConfig, VerificationConfig
+from flowslam.config import ScanContextConfig, VerificationConfig
 from flowslam.loop_closure.detector import ScanContextLoopCloser
 from flowslam.loop_closure.verification import (
     CompactCloud,
@@ -282,13 +283,9 @@ def test_drift_gate_rejects_a_look_alike_place_far_away(kitti, reference):
 
 
 def test_make_loop_closer_follows_the_variant():
-    from flowslam.backends.isam2 import Isam2Config
+    from flowslam.config import load_config
 
-    assert make_loop_closer(Isam2Config(variant="a-loam")) is None
-    assert isinstance(make_loop_closer(Isam2Config()), ScanContextLoopCloser)
-
-    class WithIsam2:
-        isam2 = Isam2Config(variant="a-loam")
-
-    assert make_loop_closer(WithIsam2()) is None
-    assert isinstance(make_loop_closer(object()), ScanContextLoopCloser)  # defaults: s-loam
+    assert make_loop_closer(LoopClosureConfig(enabled=False)) is None
+    assert isinstance(make_loop_closer(LoopClosureConfig()), ScanContextLoopCloser)
+    assert make_loop_closer(load_config(variant="a-loam").loop_closure) is None
+    assert isinstance(make_loop_closer(load_config(variant="s-loam").loop_closure), ScanContextLoopCloser)

@@ -1,4 +1,5 @@
-"""Tests of the registration core: Kabsch, kernels, IRLS, RANSAC and covariance.
+"""Tests of the registration core: Kabsch, kernels, IRLS, RANSAC and covariance
+(of a registration and of a pose's inverse).
 
 Frames: every routine returns ``T_dst_src`` (``dst ~= R src + t``), metres/radians.
 Errors are measured as ``inv(T_true) @ T_est`` (translation norm, rotation angle).
@@ -11,11 +12,22 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from flowslam.geometry import exp_se3, hat, inv, log_se3, make_T, rotation_angle, transform_points
+from flowslam.geometry import (
+    adjoint,
+    exp_se3,
+    from_euler,
+    hat,
+    inv,
+    log_se3,
+    make_T,
+    rotation_angle,
+    transform_points,
+)
 from flowslam.registration import (
     RegistrationResult,
     covariance_from_residuals,
     get_kernel,
+    inverse_covariance,
     irls,
     kabsch,
     ransac,
@@ -479,6 +491,24 @@ def test_covariance_equals_gtsam_marginal():
     np.testing.assert_allclose(result.atPose3(key).matrix(), T_est, atol=1e-9)
     cov_gtsam = gtsam.Marginals(graph, result).marginalCovariance(key)
     np.testing.assert_allclose(covariance_from_residuals(src, dst, T_est, sigma=sigma), cov_gtsam, rtol=1e-6)
+
+
+def test_inverse_covariance_against_gtsam_sampling():
+    """Sample T_i = T Exp(xi_i), xi ~ N(0, Sigma); the right-tangent deviations of the
+    inverses, Log(inv(T^-1) T_i^-1) = Log(T T_i^-1), have covariance Ad_T Sigma Ad_T^T."""
+    rng = np.random.default_rng(6)
+    T = gtsam.Pose3(from_euler("zyx", [25.0, 8.0, -4.0], t=[3.0, -1.0, 0.4], degrees=True))
+    A = rng.normal(size=(6, 6))
+    Sigma = A @ A.T * 1e-3 + np.diag([1e-4] * 3 + [1e-2] * 3)
+    xi = rng.multivariate_normal(np.zeros(6), Sigma, size=20000)
+    T_inv = T.inverse()
+    eta = np.array([gtsam.Pose3.Logmap(T_inv.between(T.compose(gtsam.Pose3.Expmap(x)).inverse())) for x in xi])
+    empirical = np.cov(eta.T)
+    predicted = inverse_covariance(T.matrix(), Sigma)
+    # the map is exactly linear (eta = -Ad_T xi), so only the sampling error remains
+    np.testing.assert_allclose(eta, -xi @ adjoint(T.matrix()).T, atol=1e-9)
+    scale = np.sqrt(np.outer(np.diag(predicted), np.diag(predicted)))
+    assert np.max(np.abs(empirical - predicted) / scale) < 0.05
 
 
 def test_irls_covariance_is_inlier_least_squares(scene):

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from flowslam.sceneflow.losses import deflow_loss, dynamic_bce, scene_adaptive_loss, scene_adaptive_split
+from flowslam.sceneflow.network.losses import deflow_loss, dynamic_bce, scene_adaptive_loss, scene_adaptive_split
 
 
 def _along(magnitudes, seed: int = 0) -> torch.Tensor:

@@ -11,12 +11,12 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from flowslam.sceneflow.backbone import STDCB, TemporalConv
-from flowslam.sceneflow.flowssm import bilinear_gather, morton_code, serialize
-from flowslam.sceneflow.losses import dynamic_bce, scene_adaptive_loss
-from flowslam.sceneflow.model import OUTSIDE_LOGIT, ModelConfig, SceneFlowNet, full_flow
-from flowslam.sceneflow.propagate import propagate, random_subsample
-from flowslam.sceneflow.voxelize import BEVGrid, PillarEncoder, index_points
+from flowslam.sceneflow.network.backbone import STDCB, TemporalConv
+from flowslam.sceneflow.network.flowssm import bilinear_gather, morton_code, serialize
+from flowslam.sceneflow.network.losses import dynamic_bce, scene_adaptive_loss
+from flowslam.sceneflow.network.model import OUTSIDE_LOGIT, ModelConfig, SceneFlowNet, full_flow
+from flowslam.sceneflow.network.propagate import propagate, random_subsample
+from flowslam.sceneflow.network.voxelize import BEVGrid, PillarEncoder, index_points
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -190,7 +190,7 @@ def test_float64_and_device_agnostic_code():
         out = net([_cloud(300, 0).double(), _cloud(300, 1).double()])
     assert out["flow"].dtype == torch.float64
     # no hard-coded device in the model code
-    package = Path(__file__).resolve().parents[1] / "flowslam" / "sceneflow"
+    package = Path(__file__).resolve().parents[1] / "flowslam" / "sceneflow" / "network"
     for name in ("voxelize", "backbone", "selective_scan", "flowssm", "model", "losses", "propagate"):
         assert not re.search(r"\.cuda\(|['\"]cuda['\"]", (package / f"{name}.py").read_text()), name
 

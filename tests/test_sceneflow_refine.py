@@ -7,8 +7,11 @@ import pytest
 from flowslam import geometry
 from flowslam.datasets import open_dataset
 from flowslam.flow_odometry import FlowToPose
-from flowslam.sceneflow.objects import MoverPrior, ObjectRefinementConfig, above_ground, bev_clusters, refine_objects
-from flowslam.sceneflow.refine import FlowRefinementConfig, refine_static_flow
+from flowslam.config import FlowRefinementConfig, ObjectRefinementConfig
+from flowslam.sceneflow.refinement.clusters import above_ground, bev_clusters
+from flowslam.sceneflow.refinement.objects import refine_objects
+from flowslam.sceneflow.refinement.tracking import MoverPrior
+from flowslam.sceneflow.refinement.static import refine_static_flow
 from flowslam.simulation.labels import CLASS_NAMES
 from flowslam.trajectory import read_trajectory
 
@@ -163,7 +166,8 @@ def test_above_ground_separates_the_road_from_what_stands_on_it():
 def test_ssf_frontend_modes_give_consistent_outputs(sim_pair, options):
     """Shipped weights on a simulated pair, in each mode: flow for every point, static
     points moved by the measurement itself whenever the refinement ran."""
-    from flowslam.frontends.ssf import SsfConfig, SsfFrontend
+    from flowslam.config import SsfConfig
+    from flowslam.frontends.ssf import SsfFrontend
 
     src, tgt = sim_pair
     frontend = SsfFrontend(SsfConfig(**options))
@@ -174,7 +178,7 @@ def test_ssf_frontend_modes_give_consistent_outputs(sim_pair, options):
     stages = set(out.stats["stage_ms"])
     if options.get("refine", {}).get("enabled", True):
         assert out.stats["refine_accepted"]
-        assert stages == {"network", "network_pose", "refine", "flow_to_pose",
+        assert stages == {"network", "pose_start", "refine", "flow_to_pose",
                           "objects" if options.get("objects", {}).get("enabled", True) else "static_flow"}
         T = geometry.inv(out.T_prev_curr)  # T_{k,k-1}
         static = out.static_mask
@@ -188,7 +192,7 @@ def test_ssf_frontend_modes_give_consistent_outputs(sim_pair, options):
 
 
 def test_range_image_tells_free_space_from_surface_and_occlusion():
-    from flowslam.sceneflow.visibility import RangeImage
+    from flowslam.sceneflow.refinement.visibility import RangeImage
 
     # a wall 10 m ahead, seen by a dense fan of rays
     az = np.radians(np.linspace(-30, 30, 600))
@@ -203,7 +207,7 @@ def test_range_image_tells_free_space_from_surface_and_occlusion():
 
 
 def test_geometric_movers_are_precise_on_simulated_traffic(sim_pair):
-    from flowslam.sceneflow.visibility import geometric_movers
+    from flowslam.sceneflow.refinement.visibility import geometric_movers
 
     src, tgt = sim_pair
     movers, seen = geometric_movers(src.points, tgt.points, geometry.relative(tgt.gt_pose, src.gt_pose))

@@ -7,7 +7,7 @@ import time
 import pytest
 import torch
 
-from flowslam.sceneflow.selective_scan import linear_scan, selective_scan, selective_scan_reference
+from flowslam.sceneflow.network.selective_scan import linear_scan, selective_scan, selective_scan_reference
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -13,9 +13,10 @@ import torch
 from flowslam import geometry
 from flowslam.datasets import open_dataset
 from flowslam.errors import InputError
-from flowslam.sceneflow.samples import PriorNoise, frames_to_sample, noisy_priors, training_sample
-from flowslam.sceneflow.train import TrainConfig, export_weights, train
-from flowslam.sceneflow.weights import load_weights
+from flowslam.config import PriorNoise, TrainConfig
+from flowslam.sceneflow.network.samples import frames_to_sample, noisy_priors, training_sample
+from flowslam.sceneflow.network.train import export_weights, train
+from flowslam.sceneflow.network.weights import load_weights
 
 NO_NOISE = PriorNoise(max_translation_m=0, max_yaw_deg=0, max_z_m=0, max_roll_pitch_deg=0, p_no_prior=0)
 
@@ -110,7 +111,7 @@ def test_train_resume_export_and_run_ssf(sim_seq, tmp_path):
     from flowslam.config import load_config
     from flowslam.registry import make_frontend
 
-    frontend = make_frontend("ssf", load_config(**{"ssf.weights": str(tmp_path / "w.pt")}))
+    frontend = make_frontend("ssf", load_config(**{"ssf.network.weights": str(tmp_path / "w.pt")}))
     ds = open_dataset(sim_seq)
     assert frontend.process(ds[0]).T_prev_curr is None
     out = frontend.process(ds[1])
@@ -119,9 +120,9 @@ def test_train_resume_export_and_run_ssf(sim_seq, tmp_path):
 
 
 def test_training_starts_from_given_weights(sim_seq, tmp_path):
-    from flowslam.sceneflow.model import ModelConfig, SceneFlowNet
-    from flowslam.sceneflow.train import _initial_state
-    from flowslam.sceneflow.weights import save_weights
+    from flowslam.sceneflow.network.model import ModelConfig, SceneFlowNet
+    from flowslam.sceneflow.network.train import _initial_state
+    from flowslam.sceneflow.network.weights import save_weights
 
     cfg = _config(sim_seq, tmp_path / "run", epochs=1, val=[])
     model = SceneFlowNet(ModelConfig.preset("tiny", num_frames=2, half_extent=25.6))
@@ -137,7 +138,7 @@ def test_training_starts_from_given_weights(sim_seq, tmp_path):
 
 
 def test_tampered_or_unhashed_weights_are_refused(sim_seq, tmp_path):
-    from flowslam.sceneflow.weights import save_weights
+    from flowslam.sceneflow.network.weights import save_weights
 
     path = tmp_path / "w.pt"
     save_weights(path, {"num_frames": 2}, {"a": torch.zeros(3)})
@@ -158,7 +159,7 @@ def test_ddp_two_gloo_processes(sim_seq, tmp_path):
     env = dict(os.environ, OMP_NUM_THREADS="1")
     proc = subprocess.run(
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-         "-m", "flowslam.sceneflow.train", str(tmp_path / "cfg.json"), "--no-progress"],
+         "-m", "flowslam.sceneflow.network.train", str(tmp_path / "cfg.json"), "--no-progress"],
         capture_output=True, text=True, env=env, timeout=600,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -169,7 +170,7 @@ def test_ddp_two_gloo_processes(sim_seq, tmp_path):
 
 
 def test_shipped_weights_load_and_fit_the_budget():
-    from flowslam.sceneflow.weights import build_model, shipped_weights
+    from flowslam.sceneflow.network.weights import build_model, shipped_weights
 
     path = shipped_weights()
     assert path.stat().st_size <= 15 * 2**20

@@ -32,9 +32,9 @@ import numpy as np
 import torch
 
 from flowslam import geometry
-from flowslam.sceneflow.model import ModelConfig, SceneFlowNet, tune_cpu_allocator
-from flowslam.sceneflow.propagate import propagate, random_subsample
-from flowslam.sceneflow.selective_scan import selective_scan, selective_scan_reference
+from flowslam.sceneflow.network.model import ModelConfig, SceneFlowNet, tune_cpu_allocator
+from flowslam.sceneflow.network.propagate import propagate, random_subsample
+from flowslam.sceneflow.network.selective_scan import selective_scan, selective_scan_reference
 
 DATA = Path(os.environ.get("FLOWSLAM_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 

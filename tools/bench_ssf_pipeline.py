@@ -3,7 +3,7 @@
 Runs ``SsfFrontend`` (shipped weights, BatchNorms folded) over a sequence -- by default
 the real KITTI 00 frames 0-15 in ``../shared/data`` -- ``--runs`` times, and reports the
 median wall time per frame of each stage (``FrontendOutput.stats["stage_ms"]``: network
-forward + propagation, network flow-to-pose, static refinement, flow-to-pose, objects)
+forward + propagation, pose start, static refinement, flow-to-pose, objects)
 and of the whole ``process`` call, plus the frame rate it allows. Three configurations
 run in the same process, one after the other, so that they share the machine's load:
 
@@ -38,9 +38,10 @@ CONFIGS = {
 
 def run_once(frames, options: dict, threads: int) -> tuple[list[float], dict[str, list[float]]]:
     """Per-frame wall times (ms) of ``process`` and of each stage, frames 1.. of one pass."""
-    from flowslam.frontends.ssf import SsfConfig, SsfFrontend
+    from flowslam.config import SsfConfig
+    from flowslam.frontends.ssf import SsfFrontend
 
-    frontend = SsfFrontend(SsfConfig(num_threads=threads, **options))
+    frontend = SsfFrontend(SsfConfig(network={"num_threads": threads}, **options))
     totals, stages = [], {}
     for k, frame in enumerate(frames):
         t0 = time.perf_counter()

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Reproduce the shipped scene-flow weights (flowslam/sceneflow/weights/ssf-tiny.pt) on a CPU:
+# Reproduce the shipped scene-flow weights (flowslam/sceneflow/network/weights/ssf-tiny.pt) on a CPU:
 # simulate the training and held-out validation sequences, train in two stages, export the
 # best checkpoint with its SHA-256.
 #   stage 1: 8 sequences, full-size prior errors (<= 1.5 m, 5 deg), an 8-epoch schedule cut by

@@ -31,9 +31,10 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     from flowslam.datasets import open_dataset
-    from flowslam.sceneflow.model import full_flow
-    from flowslam.sceneflow.samples import PriorNoise, training_sample
-    from flowslam.sceneflow.weights import build_model, load_weights, shipped_weights
+    from flowslam.sceneflow.network.model import full_flow
+    from flowslam.config import PriorNoise
+    from flowslam.sceneflow.network.samples import training_sample
+    from flowslam.sceneflow.network.weights import build_model, load_weights, shipped_weights
 
     path = args.weights or shipped_weights()
     model = build_model(load_weights(path, require_hash=args.weights is None)).eval()

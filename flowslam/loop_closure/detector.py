@@ -32,7 +32,7 @@ from flowslam.interfaces import LoopClosure
 
 from . import scan_context as sc
 from .candidates import CandidateIndex
-from .config import LoopClosureConfig
+from flowslam.config.loop_closure import LoopClosureConfig
 from .verification import CompactCloud, downsample, verify
 
 log = logging.getLogger(__name__)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import ScanContextConfig
+from flowslam.config.loop_closure import ScanContextConfig
 
 __all__ = ["scan_context", "ring_key", "distance", "distances", "shift_to_yaw"]
 

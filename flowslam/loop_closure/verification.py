@@ -25,7 +25,7 @@ import numpy as np
 
 from flowslam import geometry
 
-from .config import VerificationConfig
+from flowslam.config.loop_closure import VerificationConfig
 
 __all__ = [
     "CompactCloud",
@@ -89,9 +89,8 @@ class Verification:
 
 
 def fixed_covariance(config: VerificationConfig) -> np.ndarray:
-    """Diagonal 6x6 covariance [rot rad, trans m] from the configured sigmas."""
-    r, t = np.deg2rad(config.rotation_sigma_deg), config.translation_sigma_m
-    return np.diag([r * r] * 3 + [t * t] * 3)
+    """Diagonal 6x6 loop covariance [rot rad, trans m] from the configured sigmas."""
+    return geometry.pose_covariance(np.deg2rad(config.rotation_sigma_deg), config.translation_sigma_m)
 
 
 def open3d_information_to_covariance(

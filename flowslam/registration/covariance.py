@@ -1,5 +1,7 @@
-"""6x6 covariance of a registration from its residuals (Gauss-Newton / Laplace).
+"""6x6 pose covariances: of a registration from its residuals, and of a pose's inverse.
 
+Covariance from the residuals (Gauss-Newton / Laplace)
+------------------------------------------------------
 Residual of correspondence i at ``T = (R, t)`` (``T_dst_src``):
 
     r_i = R p_i + t - q_i                      (3-vector, m)
@@ -23,13 +25,25 @@ so it costs three weighted moments of the source points. The covariance is
 by their maximum so that unit weights give the textbook unbiased estimator). With 0/1
 weights this is exactly the least-squares covariance on the selected points and noise
 ``q_i ~ N(., sigma^2 I)``.
+
+Covariance of the inverse
+-------------------------
+A covariance ``Sigma`` in the right-perturbation tangent of ``T``: ``T_true = T Exp(xi)``,
+``xi ~ N(0, Sigma)``, ``xi = [omega, v]``. Then, exactly (``T Exp(xi) T^-1 = Exp(Ad_T xi)``)::
+
+    T_true^-1 = Exp(-xi) T^-1 = T^-1 (T Exp(-xi) T^-1) = T^-1 Exp(-Ad_T xi)
+
+so the perturbation of the inverse is ``eta = -Ad_T xi`` and
+``Cov(eta) = Ad_T Sigma Ad_T^T`` (:func:`inverse_covariance`), with GTSAM's adjoint in
+``[rot, trans]`` order ``Ad_T = [[R, 0], [hat(t) R, R]]`` (``R, t`` of ``T``;
+``gtsam.Pose3.AdjointMap``). Checked against GTSAM in ``tests/test_registration.py``.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from flowslam.geometry import hat
+from flowslam.geometry import adjoint, hat
 
 from .closed_form import squared_residuals
 
@@ -37,6 +51,7 @@ __all__ = [
     "covariance_from_residuals",
     "covariance_from_squared_residuals",
     "information_matrix",
+    "inverse_covariance",
     "residual_variance",
 ]
 
@@ -143,3 +158,11 @@ def covariance_from_squared_residuals(
         raise ValueError("singular information matrix: the points are collinear")
     cov = sigma2 * np.linalg.inv(info)
     return 0.5 * (cov + cov.T)
+
+
+def inverse_covariance(T: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """Covariance of ``inv(T)`` from the covariance of ``T`` (both right-perturbation,
+    ``[rot, trans]``): ``Ad_T Sigma Ad_T^T`` (derivation in the module doc)."""
+    A = adjoint(T)
+    C = A @ covariance @ A.T
+    return 0.5 * (C + C.T)

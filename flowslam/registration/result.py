@@ -57,12 +57,6 @@ class RegistrationResult:
     info: dict = field(default_factory=dict)
 
     @property
-    def inlier_ratio(self) -> float:
-        """Fraction of correspondences labelled inliers."""
-        n = len(self.inliers)
-        return self.num_inliers / n if n else 0.0
-
-    @property
     def T_target_source(self) -> np.ndarray:
         """Alias of :attr:`T` spelled with the frame names."""
         return self.T

@@ -1,9 +1,9 @@
 """Test-time rigid refinement of the moving points' flow, object by object (first version).
 
-After the ego motion ``T_{k,k-1}`` is refined (:mod:`flowslam.sceneflow.refine`), the
+After the ego motion ``T_{k,k-1}`` is refined (:mod:`flowslam.sceneflow.refinement.static`), the
 *candidate* moving points of scan ``k-1`` -- the network's dynamic points, the movers of
-the previous pair carried on (:class:`MoverPrior`) and the geometric movers
-(:func:`flowslam.sceneflow.visibility.geometric_movers`) -- are grouped into objects by
+the previous pair carried on (:class:`~flowslam.sceneflow.refinement.tracking.MoverPrior`) and the geometric movers
+(:func:`flowslam.sceneflow.refinement.visibility.geometric_movers`) -- are grouped into objects by
 connected components on a bird's-eye-view grid (``cluster_cell_m``). Each object with at least ``min_points``
 points is registered to scan ``k`` by point-to-point ICP (Open3D, coarse-to-fine
 correspondence distances), starting from the ego rotation and the median network
@@ -33,62 +33,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from flowslam.geometry import transform_points
-from flowslam.mapping import voxel_ids
+from flowslam.config.ssf import ObjectRefinementConfig
+from flowslam.sceneflow.refinement.clusters import bev_clusters
 
-__all__ = ["ObjectRefinementConfig", "ObjectRefinement", "MoverPrior", "above_ground", "bev_clusters", "refine_objects"]
+__all__ = ["ObjectRefinement", "refine_objects"]
 
 
-class ObjectRefinementConfig(BaseModel):
-    """Options of :func:`refine_objects` (metres, seconds)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    enabled: bool = True
-    max_range_m: float = Field(50.0, gt=0)
-    """Candidates farther than this (xy) are left as the network said."""
-    off_surface_m: float = Field(0.3, ge=0)
-    """A network-dynamic point outside every accepted object becomes static when its
-    ego-rigid landing spot is this close to a scan-k point."""
-    cluster_cell_m: float = Field(0.6, gt=0)
-    """BEV grid cell of the connected-component clustering (8-connected)."""
-    min_points: int = Field(15, ge=3)
-    correspondence_m: list[float] = Field(default_factory=lambda: [1.0, 0.3, 0.1])
-    max_iterations: int = Field(15, ge=1)
-    margin_m: float = Field(2.0, ge=0)
-    """Target points within the box around both the object's predicted and its
-    ego-rigid landing spots, grown by this, take part."""
-    normal_radius_m: float = Field(1.0, gt=0)
-    """Neighbourhood radius (at most 20 points) of the target normals used for scoring."""
-    score_distance_m: float = Field(0.3, gt=0)
-    score_plane_m: float = Field(0.1, gt=0)
-    """A moved point is on the target surface when its nearest scan-k point is within
-    ``score_distance_m`` and it is within ``score_plane_m`` of that point's tangent plane."""
-    min_fitness: float = Field(0.6, ge=0, le=1)
-    """Share of the object's points on the target surface after its ICP."""
-    max_rmse_m: float = Field(0.12, gt=0)
-    max_correction_m: float = Field(1.0, gt=0)
-    """Objects whose ICP moved their centroid farther than this from the start are
-    rejected: sparse clusters can lock onto a shifted copy of the ring pattern."""
-    static_preference: float = Field(0.03, ge=0, le=1)
-    """An object is static when the ego motion's fitness is within this of its own ICP's ..."""
-    static_rmse_ratio: float = Field(1.2, ge=1)
-    """... and its inlier RMSE at most this times the ICP's (+ 5 mm) ..."""
-    static_fitness_accept: float = Field(0.9, ge=0, le=1.01)
-    """... or when the ego motion alone puts this share of its points on scan k's surface:
-    a planar patch (road, wall) fits equally well slid along itself, so a better ICP
-    fitness there is no evidence of motion."""
-    track_radius_m: float = Field(0.15, ge=0)
-    """Points of the next scan this close to a mover's landing spot become candidates
-    (``MoverPrior``; 0: no carry-over)."""
-    hypotheses_m: list[float] = Field(default_factory=lambda: [-2.0, -1.0, -0.5, 0.5, 1.0, 2.0])
-    """Objects with seen-through points also start ICP from the ego landing shifted by
-    these distances along their principal (BEV) axis."""
-    min_seen_through: int = Field(5, ge=1)
-    dynamic_speed_mps: float = Field(0.5, ge=0)
-    """Objects moving faster than this (relative to the ego-motion flow) are dynamic."""
 
 
 @dataclass
@@ -103,19 +55,6 @@ class ObjectRefinement:
     objects: list[dict] = field(default_factory=list)
     stats: dict = field(default_factory=dict)
 
-
-def bev_clusters(points: np.ndarray, cell: float) -> np.ndarray:
-    """(N,) int label of 8-connected components of the occupied ``cell`` x ``cell`` BEV cells."""
-    from scipy import ndimage
-
-    if len(points) == 0:
-        return np.zeros(0, dtype=np.int64)
-    ij = np.floor(points[:, :2] / cell).astype(np.int64)
-    ij -= ij.min(axis=0)
-    grid = np.zeros(tuple(ij.max(axis=0) + 1), dtype=bool)
-    grid[ij[:, 0], ij[:, 1]] = True
-    labels, _ = ndimage.label(grid, structure=np.ones((3, 3), dtype=bool))
-    return labels[ij[:, 0], ij[:, 1]] - 1
 
 
 def _register(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, c: ObjectRefinementConfig):
@@ -187,17 +126,6 @@ def _principal_axis(points: np.ndarray) -> np.ndarray:
     return np.array([v[0], v[1], 0.0])
 
 
-def above_ground(points: np.ndarray, cell: float, clearance: float) -> np.ndarray:
-    """(N,) bool: points higher than the lowest point of their ``cell`` x ``cell`` BEV cell
-    plus ``clearance`` (m): a local ground estimate good enough to tell the road from what
-    stands on it."""
-    if len(points) == 0:
-        return np.zeros(0, dtype=bool)
-    inverse, counts = voxel_ids(points * [1.0, 1.0, 0.0], cell)  # BEV cells: z flattened
-    lowest = np.full(len(counts), np.inf)
-    np.minimum.at(lowest, inverse, points[:, 2])
-    return points[:, 2] > lowest[inverse] + clearance
-
 
 def refine_objects(
     source: np.ndarray,
@@ -219,7 +147,7 @@ def refine_objects(
     registered objects their own rigid flow, other dynamic points the network's flow. ``target_tree``
     may be a ``scipy.spatial.cKDTree`` over (a downsampling of) ``target``. ``movers`` and
     ``seen_through`` (N,) bool: geometric motion evidence
-    (:func:`flowslam.sceneflow.visibility.geometric_movers`); movers become candidates, and
+    (:func:`flowslam.sceneflow.refinement.visibility.geometric_movers`); movers become candidates, and
     objects with seen-through points also start ICP from shifted ego landings
     (``hypotheses_m``), since free space says *that* they moved, not where to.
     """
@@ -331,57 +259,3 @@ def refine_objects(
         "relabelled_static": int(on_surface.sum()),
     }
     return ObjectRefinement(flow, dynamic, instance, objects, stats)
-
-
-class MoverPrior:
-    """Carries the moving points of one scan pair over to the next (constant object velocity).
-
-    After pair (k-1, k): the landing spots ``p + f`` (sensor frame k) of the points found
-    dynamic, and each one's own motion ``m = p + f - T_{k,k-1} p`` (frame k, metres per
-    scan interval). For pair (k, k+1) the points of scan k within ``radius_m`` of a
-    landing spot become dynamic candidates with the predicted flow
-    ``T_{k+1,k} p - p + R_{k+1,k} m`` (the ICP's start), so that an object found once
-    keeps being refined even where the network misses it.
-    """
-
-    def __init__(self, radius_m: float = 0.15, ground_cell_m: float = 2.0, ground_clearance_m: float = 0.25):
-        self.radius_m = radius_m
-        self.ground_cell_m, self.ground_clearance_m = ground_cell_m, ground_clearance_m
-        self._landing: np.ndarray | None = None
-        self._motion: np.ndarray | None = None
-
-    def update(self, source: np.ndarray, flow: np.ndarray, dynamic: np.ndarray, T_ego: np.ndarray) -> None:
-        """Record pair (k-1, k): source points (frame k-1), flow, labels, ``T_ego`` = T_{k,k-1}.
-        Ground-level points are not carried (``ground_clearance_m`` above the lowest point of
-        their ``ground_cell_m`` BEV cell): the road under a mover would carry its motion on."""
-        idx = np.flatnonzero(dynamic)
-        if idx.size and self.ground_clearance_m > 0:
-            near = np.hypot(source[:, 0], source[:, 1]) < np.hypot(*np.abs(source[idx, :2]).max(axis=0)) + 5.0
-            above = np.zeros(len(source), dtype=bool)
-            above[near] = above_ground(source[near], self.ground_cell_m, self.ground_clearance_m)
-            idx = idx[above[idx]]
-        p = source[idx]
-        self._landing = p + flow[idx]
-        self._motion = self._landing - transform_points(T_ego, p)
-
-    def predict(self, points: np.ndarray, T_ego: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(N,) bool candidates among ``points`` (scan k, frame k) and their (N,3) predicted
-        flow (rows of non-candidates are zero), given ``T_ego`` = T_{k+1,k}."""
-        from scipy.spatial import cKDTree
-
-        mask = np.zeros(len(points), dtype=bool)
-        flow = np.zeros((len(points), 3))
-        if self._landing is None or len(self._landing) == 0:
-            return mask, flow
-        lo, hi = self._landing.min(axis=0) - self.radius_m, self._landing.max(axis=0) + self.radius_m
-        inside = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
-        dist, j_in = cKDTree(self._landing).query(points[inside], distance_upper_bound=self.radius_m)
-        mask[inside] = np.isfinite(dist)
-        j = np.zeros(len(points), dtype=np.int64)
-        j[inside] = np.minimum(j_in, len(self._landing) - 1)
-        p = points[mask]
-        flow[mask] = transform_points(T_ego, p) - p + self._motion[j[mask]] @ T_ego[:3, :3].T
-        return mask, flow
-
-    def reset(self) -> None:
-        self._landing = self._motion = None

@@ -5,7 +5,7 @@ A weights file is ``torch.save({"format": "flowslam-sceneflow", "version": 1,
 JSON-like values only, so it loads with ``torch.load(weights_only=True)`` (no pickle
 code runs). Beside it, ``<file>.sha256`` records its SHA-256; loading refuses a file
 whose hash differs (a tampered or truncated file). The shipped weights live in
-``flowslam/sceneflow/weights/`` inside the package.
+``flowslam/sceneflow/network/weights/`` inside the package.
 """
 
 from __future__ import annotations
@@ -85,7 +85,7 @@ def load_weights(path: str | Path, *, require_hash: bool = True) -> dict:
 
 def build_model(payload: dict):
     """A ``SceneFlowNet`` in eval mode with the payload's config and weights."""
-    from flowslam.sceneflow.model import ModelConfig, SceneFlowNet
+    from flowslam.sceneflow.network.model import ModelConfig, SceneFlowNet
 
     model = SceneFlowNet(ModelConfig(**payload["model_config"]))
     model.load_state_dict(payload["state_dict"])

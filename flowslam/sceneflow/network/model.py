@@ -49,9 +49,9 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor, nn
 
-from flowslam.sceneflow.backbone import STUNet, _Down
-from flowslam.sceneflow.flowssm import FlowSSMDecoder, bilinear_gather, morton_code
-from flowslam.sceneflow.voxelize import BEVGrid, PillarEncoder, index_points
+from flowslam.sceneflow.network.backbone import STUNet, _Down
+from flowslam.sceneflow.network.flowssm import FlowSSMDecoder, bilinear_gather, morton_code
+from flowslam.sceneflow.network.voxelize import BEVGrid, PillarEncoder, index_points
 
 __all__ = ["ModelConfig", "SceneFlowNet", "full_flow", "tune_cpu_allocator", "OUTSIDE_LOGIT", "PRESETS"]
 

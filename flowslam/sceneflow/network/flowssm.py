@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from flowslam.sceneflow.selective_scan import selective_scan
+from flowslam.sceneflow.network.selective_scan import selective_scan
 
 __all__ = [
     "morton_code",

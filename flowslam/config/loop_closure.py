@@ -1,22 +1,21 @@
-"""Options of loop closure: Scan Context place recognition and ICP verification (pydantic).
+"""Options of loop closure (``loop_closure:`` in the run config): Scan Context place
+recognition and ICP verification.
 
-Nested in ``Isam2Config.loop_closure`` (``isam2.loop_closure`` in the YAML config).
-Units: metres and radians, except fields whose name says ``_deg``. This module
-imports only pydantic, so loading a config never imports Open3D or GTSAM.
+The ``s-loam`` variant is ``loop_closure.enabled: true`` (the default); ``a-loam`` is
+``false``. A loop closer is built only for backends that take loops (``isam2``).
+Units: metres and radians, except fields whose name says ``_deg``.
 """
 
 from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from flowslam.config.base import StrictModel
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class ScanContextConfig(_Strict):
+class ScanContextConfig(StrictModel):
     """The Scan Context descriptor (Kim & Kim, IROS 2018): rings x sectors of max height."""
 
     rings: int = Field(20, ge=2)
@@ -29,7 +28,7 @@ class ScanContextConfig(_Strict):
     """Added to z (sensor frame) before taking the max, so ground bins are > 0 and empty ones 0."""
 
 
-class VerificationConfig(_Strict):
+class VerificationConfig(StrictModel):
     """Geometric verification of a candidate pair with Open3D point-to-plane ICP."""
 
     voxel_m: float = Field(0.75, gt=0)
@@ -52,14 +51,20 @@ class VerificationConfig(_Strict):
     """Loop covariance: the fixed sigmas below, or ICP's point-to-point information scaled by
     the inlier RMSE (Open3D, converted to GTSAM's right perturbation) plus the fixed one."""
     rotation_sigma_deg: float = Field(1.0, gt=0)
+    """Fixed loop covariance: rotation 1-sigma per axis (deg) ..."""
     translation_sigma_m: float = Field(0.1, gt=0)
+    """... and translation 1-sigma per axis (m)."""
 
 
-class LoopClosureConfig(_Strict):
+class LoopClosureConfig(StrictModel):
     """Candidate search (ring-key KD-tree), exclusions, descriptor threshold, verification."""
 
+    enabled: bool = True
+    """Detect loops and add them to the graph (variant ``s-loam``); False = ``a-loam``."""
     scan_context: ScanContextConfig = ScanContextConfig()
+    """The place descriptor."""
     verification: VerificationConfig = VerificationConfig()
+    """ICP check of a candidate pair."""
     num_candidates: int = Field(10, ge=1)
     """Nearest ring keys looked at; the best by column-shift distance is verified."""
     tree_rebuild_every: int = Field(50, ge=1)
@@ -77,5 +82,6 @@ class LoopClosureConfig(_Strict):
     that. True loops pass for odometry that drifts less than the fraction; look-alike
     places far away (repetitive streets, a procedural town) do not."""
     gate_drift_fraction: float = Field(0.03, ge=0)
+    """The drift share of that gate (see ``gate_base_m``)."""
     cooldown_frames: int = Field(5, ge=0)
     """After an accepted loop, skip detection for this many scans."""

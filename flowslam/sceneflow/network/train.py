@@ -25,54 +25,19 @@ import os
 import time
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import torch
 import torch.distributed as dist
-from pydantic import BaseModel, ConfigDict, Field
 
+from flowslam.config import load_training_config
+from flowslam.config.training import PriorNoise, TrainConfig
 from flowslam.errors import InputError
-from flowslam.sceneflow.samples import PriorNoise, Sample, training_indices, training_sample
+from flowslam.sceneflow.network.samples import Sample, training_indices, training_sample
 
 log = logging.getLogger(__name__)
 
 
-class TrainConfig(BaseModel):
-    """Every knob of a training run (metres, seconds)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    data: list[Path] = Field(default_factory=list, description="training sequences")
-    val: list[Path] = Field(default_factory=list, description="validation sequences (held out)")
-    out_dir: Path = Path("runs/sceneflow")
-    model_preset: str = "tiny"
-    model_overrides: dict = Field(default_factory=dict)
-    init_weights: Path | None = None
-    """Start from these weights (a weights file or a checkpoint) instead of random ones;
-    the model config must match. Unlike ``resume``, optimiser and schedule start fresh."""
-    num_frames: int = 5
-    max_points: int = 16384
-    """Points sampled per frame (the network sees at most this many)."""
-    epochs: int = 10
-    batch_size: int = 2
-    lr: float = 2e-3
-    weight_decay: float = 1e-4
-    loss: Literal["scene-adaptive", "deflow"] = "scene-adaptive"
-    bce_weight: float = 0.2
-    prior_noise: PriorNoise = PriorNoise()
-    seed: int = 0
-    max_minutes: float | None = None
-    """Stop (after a checkpoint) once this much wall time has passed."""
-    val_samples: int = 24
-    """Validation samples per epoch (fixed, seeded priors)."""
-    amp: bool = True
-    """bf16 autocast on CUDA (ignored on CPU)."""
-    num_threads: int | None = None
-    """torch intra-op threads on CPU (None: torch's default)."""
-
-
-# -- data ---------------------------------------------------------------------------------
 
 
 class FlowSamples(torch.utils.data.Dataset):
@@ -141,7 +106,7 @@ def _all_mean(value: float, device: torch.device) -> float:
 
 
 def compute_loss(out: dict, batch: dict, config: TrainConfig, device: torch.device) -> torch.Tensor:
-    from flowslam.sceneflow.losses import deflow_loss, dynamic_bce, scene_adaptive_loss
+    from flowslam.sceneflow.network.losses import deflow_loss, dynamic_bce, scene_adaptive_loss
 
     valid = out["valid"]
     pred = out["flow"][valid].float()
@@ -156,7 +121,7 @@ def compute_loss(out: dict, batch: dict, config: TrainConfig, device: torch.devi
 def evaluate_samples(model, samples: list[Sample], device: torch.device) -> dict:
     """Full-flow metrics (EPE3D, AccStrict, AccRelax, Dynamic IoU) over ``samples``."""
     from flowslam.sceneflow.metrics import acc_relax, acc_strict, dynamic_iou, epe3d
-    from flowslam.sceneflow.model import full_flow
+    from flowslam.sceneflow.network.model import full_flow
 
     model.eval()
     preds, gts, dyn_pred, dyn_gt = [], [], [], []
@@ -208,7 +173,7 @@ def _initial_state(path: Path, model_config: dict) -> dict:
 
 def train(config: TrainConfig, resume: Path | None = None, progress: bool = True) -> dict:
     """Run a training; returns the final validation metrics and paths (rank 0)."""
-    from flowslam.sceneflow.model import ModelConfig, SceneFlowNet
+    from flowslam.sceneflow.network.model import ModelConfig, SceneFlowNet
 
     rank, world, device = _dist_init()
     torch.manual_seed(config.seed)
@@ -313,7 +278,7 @@ def train(config: TrainConfig, resume: Path | None = None, progress: bool = True
 
 def export_weights(checkpoint: Path, out_path: Path) -> str:
     """Write a shippable weights file (+ .sha256) from a training checkpoint; returns its hash."""
-    from flowslam.sceneflow.weights import save_weights
+    from flowslam.sceneflow.network.weights import save_weights
 
     ckpt = torch.load(checkpoint, map_location="cpu", weights_only=True)
     meta = {
@@ -325,15 +290,16 @@ def export_weights(checkpoint: Path, out_path: Path) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m flowslam.sceneflow.train CONFIG.json [--resume CKPT]`` (for torchrun)."""
+    """``python -m flowslam.sceneflow.network.train CONFIG [--resume CKPT]`` (for torchrun); CONFIG
+    is a run config YAML (its ``training:`` section) or a TrainConfig YAML/JSON."""
     import argparse
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("config", type=Path, help="TrainConfig as JSON")
+    parser.add_argument("config", type=Path, help="run config YAML (training: section) or TrainConfig YAML/JSON")
     parser.add_argument("--resume", type=Path)
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
-    config = TrainConfig.model_validate_json(args.config.read_text())
+    config = load_training_config(args.config)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     train(config, resume=args.resume, progress=not args.no_progress)
 

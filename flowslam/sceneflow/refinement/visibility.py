@@ -21,34 +21,13 @@ Frames: ``source`` in sensor frame ``k-1``, ``target`` in sensor frame ``k``,
 from __future__ import annotations
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
-
+from flowslam.config.ssf import MotionEvidenceConfig
 from flowslam.geometry import transform_points
+from flowslam.sceneflow.refinement.clusters import above_ground, bev_clusters
 
-__all__ = ["MotionEvidenceConfig", "RangeImage", "spherical", "geometric_movers"]
+__all__ = ["RangeImage", "spherical", "geometric_movers"]
 
 
-class MotionEvidenceConfig(BaseModel):
-    """Options of :func:`geometric_movers` (metres, degrees)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    enabled: bool = True
-    max_range_m: float = Field(40.0, gt=0)
-    azimuth_resolution_deg: float = Field(0.4, gt=0)
-    elevation_resolution_deg: float = Field(0.4, gt=0)
-    window: int = Field(1, ge=0)
-    """Half-size of the bin window that must all see beyond the point (1: 3x3 bins)."""
-    margin_m: float = Field(0.3, ge=0)
-    relative_margin: float = Field(0.02, ge=0)
-    """A return is beyond a point at range r when farther than r + margin_m + relative_margin r."""
-    off_surface_m: float = Field(0.25, gt=0)
-    ground_cell_m: float = Field(2.0, gt=0)
-    ground_clearance_m: float = Field(0.3, ge=0)
-    cluster_cell_m: float = Field(0.4, gt=0)
-    min_points: int = Field(15, ge=1)
-    min_seen_through: int = Field(5, ge=1)
-    max_extent_m: float = Field(12.0, gt=0)
 
 
 def spherical(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -102,7 +81,6 @@ def geometric_movers(
     """(movers, seen_through): (N,) bool masks over ``source`` (module doc)."""
     from scipy.spatial import cKDTree
 
-    from flowslam.sceneflow.objects import above_ground, bev_clusters
 
     c = config or MotionEvidenceConfig()
     movers = np.zeros(len(source), dtype=bool)

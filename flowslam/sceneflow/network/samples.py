@@ -20,32 +20,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
-
 from flowslam import geometry
+from flowslam.config.training import PriorNoise
 from flowslam.datasets.frame import Dataset, Frame
 
 
-class PriorNoise(BaseModel):
-    """How the training prior is corrupted (uniform draws; metres and degrees)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    max_translation_m: float = 1.5
-    """Newest step: translation error drawn uniformly in a disc of this radius (x, y)."""
-    max_yaw_deg: float = 5.0
-    """Newest step: yaw error drawn uniformly in +-this."""
-    max_z_m: float = 0.1
-    max_roll_pitch_deg: float = 0.5
-    older_step_fraction: float = 0.1
-    """Older steps (odometry already estimated) get errors scaled by this."""
-    p_no_prior: float = 0.1
-    """Probability of feeding the raw scans (identity prior)."""
-    scale_exponent: float = 0.0
-    """Per sample, every error above is multiplied by ``u ** scale_exponent`` with ``u``
-    uniform in [0, 1]: 0 keeps the full-size errors, 2 draws a third of the size on
-    average, so that the network also learns to be precise when the prior is nearly
-    right (as it is in a second pass or on smooth driving)."""
 
 
 @dataclass

@@ -33,36 +33,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
-
+from flowslam.config.ssf import FlowRefinementConfig
 from flowslam.geometry import transform_points
 
-__all__ = ["FlowRefinementConfig", "RefinedFlow", "refine_static_flow"]
+__all__ = ["RefinedFlow", "refine_static_flow"]
 
 
-class FlowRefinementConfig(BaseModel):
-    """Options of :func:`refine_static_flow` (metres)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    enabled: bool = True
-    """False: the odometry uses the network's static flow as it is."""
-    voxel_m: float = Field(0.4, gt=0)
-    """Voxel size of the downsampled source and target clouds."""
-    max_range_m: float = Field(80.0, gt=0)
-    """Points farther from the sensor are not used."""
-    correspondence_m: list[float] = Field(default_factory=lambda: [1.0, 0.3])
-    """ICP stages, coarse to fine: largest correspondence distance per stage."""
-    max_iterations: int = Field(30, ge=1)
-    max_source_points: int = Field(4000, ge=10)
-    """At most this many downsampled static source points (a seeded random subset)."""
-    """ICP iterations per stage."""
-    normal_radius_m: float = Field(1.2, gt=0)
-    """Neighbourhood radius (at most 20 points) of the target normals."""
-    dynamic_exclusion_m: float = Field(0.6, ge=0)
-    """Target points this close to a predicted dynamic landing point are left out."""
-    min_fitness: float = Field(0.3, ge=0, le=1)
-    """Refinement rejected (network flow kept) when fewer source points find a partner."""
 
 
 @dataclass

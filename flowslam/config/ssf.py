@@ -1,0 +1,181 @@
+"""Options of the ``ssf`` frontend (``ssf:`` in the run config), one section per stage.
+
+The frontend is a chain of stages (``flowslam.frontends.ssf``)::
+
+    network -> pose_start -> refine (static refinement) -> flow_to_pose -> objects
+
+``network`` always runs; ``refine.enabled: false`` keeps the network's flow as it is
+(then ``pose_start`` is not needed and ``objects`` cannot run: it verifies objects
+against the refined ego motion); ``objects.enabled: false`` gives the static points
+the rigid flow of the measurement and keeps the network's flow for the rest. The
+``flow_to_pose`` stage uses the run's ``flow_odometry:`` section.
+
+Metres, seconds, radians except fields whose name says ``_deg``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field
+
+from flowslam.config.base import StrictModel
+
+
+class NetworkStageConfig(StrictModel):
+    """The learned scene-flow network: per-point flow and dynamic probability of scan k-1."""
+
+    weights: Path | None = None
+    """Weights file; None = the weights shipped in the package (hash-checked)."""
+    max_points: int = Field(16384, ge=16)
+    """Points sampled per scan for the network (flow is propagated to all points)."""
+    dynamic_threshold: float = Field(0.3, gt=0, lt=1)
+    """A point is a dynamic candidate when sigmoid(logit) exceeds this (the objects stage
+    verifies candidates, so recall matters more than precision: 0.3 beat 0.5 on the
+    held-out simulated sequences used for tuning)."""
+    device: str = "cpu"
+    """torch device of the network ('cpu', 'cuda', 'cuda:1', ...)."""
+    num_threads: int | None = Field(None, ge=1)
+    """torch intra-op threads (None: torch's default)."""
+
+
+class PoseStartConfig(StrictModel):
+    """The start of the static refinement: ``FlowToPose`` on the network's static flow.
+
+    Only a start for the ICP, so it is registered cheaply: the fields below replace
+    those of ``flow_odometry:``, every other field is taken from there."""
+
+    max_points: int = Field(5000, ge=0)
+    """Static flow pairs registered (seeded random subsample; 0 = all)."""
+    ransac_below_inlier_ratio: float = Field(0.0, ge=0, le=1)
+    """RANSAC rescue below this inlier share (0: never; the refinement registers again)."""
+    check_geometry: bool = False
+    """Run the corridor degeneracy check (the refined registration runs it anyway)."""
+
+
+class FlowRefinementConfig(StrictModel):
+    """Static refinement: flow-guided point-to-plane ICP of the static points onto scan k,
+    each static point then snapped onto scan k's tangent plane."""
+
+    enabled: bool = True
+    """False: the odometry uses the network's static flow as it is."""
+    voxel_m: float = Field(0.4, gt=0)
+    """Voxel size of the downsampled source and target clouds."""
+    max_range_m: float = Field(80.0, gt=0)
+    """Points farther from the sensor are not used."""
+    correspondence_m: list[float] = Field(default_factory=lambda: [1.0, 0.3])
+    """ICP stages, coarse to fine: largest correspondence distance per stage."""
+    max_iterations: int = Field(30, ge=1)
+    """ICP iterations per stage."""
+    max_source_points: int = Field(4000, ge=10)
+    """At most this many downsampled static source points (a seeded random subset)."""
+    normal_radius_m: float = Field(1.2, gt=0)
+    """Neighbourhood radius (at most 20 points) of the target normals."""
+    dynamic_exclusion_m: float = Field(0.6, ge=0)
+    """Target points this close to a predicted dynamic landing point are left out."""
+    min_fitness: float = Field(0.3, ge=0, le=1)
+    """Refinement rejected (network flow kept) when fewer source points find a partner."""
+
+
+class MotionEvidenceConfig(StrictModel):
+    """Geometric movers: points that leave scan k's surface under the ego motion and lie
+    where a range image of scan k sees through (degrees for the image bins)."""
+
+    enabled: bool = True
+    """Add geometric movers to the objects' candidates."""
+    max_range_m: float = Field(40.0, gt=0)
+    """Points farther than this (horizontal distance, m) are not tested."""
+    azimuth_resolution_deg: float = Field(0.4, gt=0)
+    """Azimuth bin of the range image."""
+    elevation_resolution_deg: float = Field(0.4, gt=0)
+    """Elevation bin of the range image."""
+    window: int = Field(1, ge=0)
+    """Half-size of the bin window that must all see beyond the point (1: 3x3 bins)."""
+    margin_m: float = Field(0.3, ge=0)
+    """A return is beyond a point at range r when farther than r + margin_m + relative_margin r ..."""
+    relative_margin: float = Field(0.02, ge=0)
+    """... (the relative part of that margin)."""
+    off_surface_m: float = Field(0.25, gt=0)
+    """A point is off scan k's surface when its ego-moved position has no scan-k point this close."""
+    ground_cell_m: float = Field(2.0, gt=0)
+    """BEV cell of the ground estimate (lowest point per cell)."""
+    ground_clearance_m: float = Field(0.3, ge=0)
+    """Points less than this above the ground estimate are never movers."""
+    cluster_cell_m: float = Field(0.4, gt=0)
+    """BEV cell of the movers' connected-component clustering."""
+    min_points: int = Field(15, ge=1)
+    """Clusters with fewer points are dropped."""
+    min_seen_through: int = Field(5, ge=1)
+    """... and clusters with fewer seen-through points."""
+    max_extent_m: float = Field(12.0, gt=0)
+    """... and clusters whose BEV extent (diagonal) exceeds this (walls, not vehicles)."""
+
+
+class ObjectRefinementConfig(StrictModel):
+    """Objects stage: candidate moving points clustered, each object registered to scan k
+    by its own rigid ICP; static when the ego motion explains it as well."""
+
+    enabled: bool = True
+    """False: static points get the rigid flow of the measurement, the rest the network's flow."""
+    max_range_m: float = Field(50.0, gt=0)
+    """Candidates farther than this (xy) are left as the network said."""
+    off_surface_m: float = Field(0.3, ge=0)
+    """A network-dynamic point outside every accepted object becomes static when its
+    ego-rigid landing spot is this close to a scan-k point."""
+    cluster_cell_m: float = Field(0.6, gt=0)
+    """BEV grid cell of the connected-component clustering (8-connected)."""
+    min_points: int = Field(15, ge=3)
+    """Clusters with fewer points are not registered."""
+    correspondence_m: list[float] = Field(default_factory=lambda: [1.0, 0.3, 0.1])
+    """Per-object ICP stages, coarse to fine: largest correspondence distance per stage."""
+    max_iterations: int = Field(15, ge=1)
+    """ICP iterations per stage."""
+    margin_m: float = Field(2.0, ge=0)
+    """Target points within the box around both the object's predicted and its
+    ego-rigid landing spots, grown by this, take part."""
+    normal_radius_m: float = Field(1.0, gt=0)
+    """Neighbourhood radius (at most 20 points) of the target normals used for scoring."""
+    score_distance_m: float = Field(0.3, gt=0)
+    """A moved point is on the target surface when its nearest scan-k point is within this ..."""
+    score_plane_m: float = Field(0.1, gt=0)
+    """... and it is within this of that point's tangent plane."""
+    min_fitness: float = Field(0.6, ge=0, le=1)
+    """Share of the object's points on the target surface after its ICP."""
+    max_rmse_m: float = Field(0.12, gt=0)
+    """Largest inlier RMSE of an accepted object ICP."""
+    max_correction_m: float = Field(1.0, gt=0)
+    """Objects whose ICP moved their centroid farther than this from the start are
+    rejected: sparse clusters can lock onto a shifted copy of the ring pattern."""
+    static_preference: float = Field(0.03, ge=0, le=1)
+    """An object is static when the ego motion's fitness is within this of its own ICP's ..."""
+    static_rmse_ratio: float = Field(1.2, ge=1)
+    """... and its inlier RMSE at most this times the ICP's (+ 5 mm) ..."""
+    static_fitness_accept: float = Field(0.9, ge=0, le=1.01)
+    """... or when the ego motion alone puts this share of its points on scan k's surface:
+    a planar patch (road, wall) fits equally well slid along itself, so a better ICP
+    fitness there is no evidence of motion."""
+    track_radius_m: float = Field(0.15, ge=0)
+    """Points of the next scan this close to a mover's landing spot become candidates
+    (mover tracking; 0: no carry-over)."""
+    hypotheses_m: list[float] = Field(default_factory=lambda: [-2.0, -1.0, -0.5, 0.5, 1.0, 2.0])
+    """Objects with seen-through points also start ICP from the ego landing shifted by
+    these distances along their principal (BEV) axis."""
+    min_seen_through: int = Field(5, ge=1)
+    """Seen-through points an object needs for those extra starts."""
+    dynamic_speed_mps: float = Field(0.5, ge=0)
+    """Objects moving faster than this (relative to the ego-motion flow) are dynamic."""
+    motion_evidence: MotionEvidenceConfig = MotionEvidenceConfig()
+    """Geometric movers added to the candidates."""
+
+
+class SsfConfig(StrictModel):
+    """The ``ssf`` frontend: learned scene flow refined at test time, segmentation, odometry."""
+
+    network: NetworkStageConfig = NetworkStageConfig()
+    """Stage 1: the learned flow network."""
+    pose_start: PoseStartConfig = PoseStartConfig()
+    """Stage 2: the refinement's start from the network's static flow."""
+    refine: FlowRefinementConfig = FlowRefinementConfig()
+    """Stage 3: static refinement against scan k."""
+    objects: ObjectRefinementConfig = ObjectRefinementConfig()
+    """Stage 5 (after flow-to-pose): moving objects, instances and their flow."""

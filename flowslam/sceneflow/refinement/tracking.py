@@ -1,0 +1,66 @@
+"""Mover tracking from one scan pair to the next: ``MoverPrior`` (constant object velocity).
+
+Frames: the movers of pair (k-1, k) are stored as landing spots in sensor frame k;
+``T_ego`` is ``T_{k,k-1}`` when recording and ``T_{k+1,k}`` when predicting; metres
+per scan interval.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from flowslam.geometry import transform_points
+from flowslam.sceneflow.refinement.clusters import above_ground
+
+__all__ = ["MoverPrior"]
+
+
+class MoverPrior:
+    """Carries the moving points of one scan pair over to the next (constant object velocity).
+
+    After pair (k-1, k): the landing spots ``p + f`` (sensor frame k) of the points found
+    dynamic, and each one's own motion ``m = p + f - T_{k,k-1} p`` (frame k, metres per
+    scan interval). For pair (k, k+1) the points of scan k within ``radius_m`` of a
+    landing spot become dynamic candidates with the predicted flow
+    ``T_{k+1,k} p - p + R_{k+1,k} m`` (the ICP's start), so that an object found once
+    keeps being refined even where the network misses it.
+    """
+
+    def __init__(self, radius_m: float = 0.15, ground_cell_m: float = 2.0, ground_clearance_m: float = 0.25):
+        self.radius_m = radius_m
+        self.ground_cell_m, self.ground_clearance_m = ground_cell_m, ground_clearance_m
+        self._landing: np.ndarray | None = None
+        self._motion: np.ndarray | None = None
+
+    def update(self, source: np.ndarray, flow: np.ndarray, dynamic: np.ndarray, T_ego: np.ndarray) -> None:
+        """Record pair (k-1, k): source points (frame k-1), flow, labels, ``T_ego`` = T_{k,k-1}.
+        Ground-level points are not carried (``ground_clearance_m`` above the lowest point of
+        their ``ground_cell_m`` BEV cell): the road under a mover would carry its motion on."""
+        idx = np.flatnonzero(dynamic)
+        if idx.size and self.ground_clearance_m > 0:
+            near = np.hypot(source[:, 0], source[:, 1]) < np.hypot(*np.abs(source[idx, :2]).max(axis=0)) + 5.0
+            above = np.zeros(len(source), dtype=bool)
+            above[near] = above_ground(source[near], self.ground_cell_m, self.ground_clearance_m)
+            idx = idx[above[idx]]
+        p = source[idx]
+        self._landing = p + flow[idx]
+        self._motion = self._landing - transform_points(T_ego, p)
+
+    def predict(self, points: np.ndarray, T_ego: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) bool candidates among ``points`` (scan k, frame k) and their (N,3) predicted
+        flow (rows of non-candidates are zero), given ``T_ego`` = T_{k+1,k}."""
+        from scipy.spatial import cKDTree
+
+        mask = np.zeros(len(points), dtype=bool)
+        flow = np.zeros((len(points), 3))
+        if self._landing is None or len(self._landing) == 0:
+            return mask, flow
+        lo, hi = self._landing.min(axis=0) - self.radius_m, self._landing.max(axis=0) + self.radius_m
+        inside = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
+        dist, j_in = cKDTree(self._landing).query(points[inside], distance_upper_bound=self.radius_m)
+        mask[inside] = np.isfinite(dist)
+        j = np.zeros(len(points), dtype=np.int64)
+        j[inside] = np.minimum(j_in, len(self._landing) - 1)
+        p = points[mask]
+        flow[mask] = transform_points(T_ego, p) - p + self._motion[j[mask]] @ T_ego[:3, :3].T
+        return mask, flow

@@ -1,0 +1,245 @@
+"""The stages of the ``ssf`` frontend, one class each, run in order on one scan pair.
+
+A stage reads and fills a :class:`PairState` (the pair (k-1, k) and what earlier stages
+found) and has its own options section (``flowslam.config.ssf``) and its own entry in
+``FrontendOutput.stats["stage_ms"]``:
+
+================  ====================================================================
+``network``       learned flow + dynamic probability of every point of scan k-1
+``pose_start``    ``FlowToPose`` on the network's static flow -> ``T_start`` (ICP start)
+``refine``        static refinement against scan k -> snapped static pairs
+``flow_to_pose``  the odometry measurement ``T_prev_curr`` + covariance
+``objects``       candidates -> objects -> per-point flow, dynamic label, instance
+``static_flow``   (objects off) static points get the rigid flow of the measurement
+================  ====================================================================
+
+Frames: ``prev`` = scan k-1 (its sensor frame), ``frame`` = scan k; ``flow`` (N,3) over
+the points of scan k-1, Argoverse 2 convention (``p + flow`` in sensor frame k, m);
+``T_*_prev`` poses are ``T_world_sensor`` estimates of the frontend itself (never GT).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from flowslam import geometry
+from flowslam.config import FlowOdometryConfig, SsfConfig
+from flowslam.datasets.frame import Frame
+from flowslam.flow_odometry import FlowPoseEstimate, FlowToPose
+from flowslam.sceneflow.refinement.static import RefinedFlow
+
+
+@dataclass
+class PairState:
+    """What the stages know about the scan pair (k-1, k) (frames: module doc)."""
+
+    prev: Frame
+    """Scan k-1: the points every per-point array refers to."""
+    frame: Frame
+    """Scan k."""
+    history: list[Frame]
+    """The network's older input scans, oldest first, ending with ``prev``."""
+    history_poses: list[np.ndarray]
+    """The frontend's own ``T_world_sensor`` estimates of ``history``."""
+    T_world_guess: np.ndarray
+    """Constant-velocity guess of scan k's ``T_world_sensor`` (the network's ego prior)."""
+    flow: np.ndarray | None = None
+    """(N,3) flow of scan k-1's points (m, AV2 convention)."""
+    dynamic_prob: np.ndarray | None = None
+    """(N,) the network's dynamic probability."""
+    static: np.ndarray | None = None
+    """(N,) bool: static points (network threshold, then the objects stage's labels)."""
+    instance: np.ndarray | None = None
+    """(N,) int: moving-object instance of each point in this pair (-1: none)."""
+    T_start: np.ndarray | None = None
+    """``T_{k,k-1}`` from the network's static flow (start of the static refinement)."""
+    refined: RefinedFlow | None = None
+    """Snapped static pairs, when the refinement ran."""
+    estimate: FlowPoseEstimate | None = None
+    """The odometry measurement of the pair."""
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def dt(self) -> float:
+        """Time between the scans (s)."""
+        return self.frame.timestamp - self.prev.timestamp
+
+    @property
+    def refinement_accepted(self) -> bool:
+        return self.refined is not None and self.refined.accepted
+
+
+class Stage(Protocol):
+    name: str
+
+    def run(self, state: PairState) -> None:
+        """Read and fill ``state``."""
+        ...
+
+
+class NetworkStage:
+    """The learned network on the last T scans, compensated with the frontend's own poses
+    (module doc of ``flowslam.frontends.ssf``); flow and probability for every point of
+    scan k-1 (propagated from the sample)."""
+
+    name = "network"
+
+    def __init__(self, config: SsfConfig):
+        import torch
+
+        from flowslam.sceneflow.network.weights import build_model, load_weights, shipped_weights
+
+        self.options = c = config.network
+        self.dynamic_threshold = c.dynamic_threshold
+        if c.num_threads:
+            torch.set_num_threads(c.num_threads)
+        payload = load_weights(c.weights or shipped_weights(), require_hash=c.weights is None)
+        self.device = torch.device(c.device)
+        self.model = build_model(payload).to(self.device)
+        if self.device.type == "cpu":
+            from flowslam.sceneflow.network.model import tune_cpu_allocator
+
+            self.model.fold_batchnorm()  # inference only: BatchNorm folded into the convolutions
+            tune_cpu_allocator()
+        self.num_frames = self.model.config.num_frames
+
+    def run(self, state: PairState) -> None:
+        import torch
+
+        from flowslam.sceneflow.network.model import full_flow
+        from flowslam.sceneflow.network.propagate import propagate
+        from flowslam.sceneflow.network.samples import frames_to_sample
+
+        frames, poses = list(state.history), list(state.history_poses)
+        while len(frames) < self.num_frames - 1:  # start of a sequence: repeat the oldest scan
+            frames.insert(0, frames[0])
+            poses.insert(0, poses[0])
+        T_new_world = geometry.inv(state.T_world_guess)
+        priors = [T_new_world @ T for T in poses] + [np.eye(4)]
+        sample = frames_to_sample(frames + [state.frame], priors, self.options.max_points)
+        prev = state.prev
+        with torch.no_grad():
+            out = self.model({"points": [[torch.from_numpy(p).to(self.device) for p in sample.points]]})
+            values = propagate(
+                torch.from_numpy(prev.points).to(self.device).float(),
+                torch.from_numpy(sample.source_index).to(self.device),
+                torch.cat([out["flow"].float(), out["dynamic_logit"].float()[:, None]], dim=1),
+            ).cpu().numpy().astype(np.float64)
+        compensated = geometry.transform_points(sample.T_new_src, prev.points)
+        state.flow = full_flow(prev.points, compensated, values[:, :3])
+        state.dynamic_prob = 1.0 / (1.0 + np.exp(-values[:, 3]))
+        state.static = state.dynamic_prob < self.dynamic_threshold
+
+
+class PoseStartStage:
+    """``FlowToPose`` on the network's static flow with the cheap ``pose_start`` options."""
+
+    name = "pose_start"
+
+    def __init__(self, config: SsfConfig, flow_odometry: FlowOdometryConfig):
+        self.flow_to_pose = FlowToPose(flow_odometry.model_copy(update=config.pose_start.model_dump()))
+
+    def run(self, state: PairState) -> None:
+        est = self.flow_to_pose.estimate(state.prev.points, state.flow, static_mask=state.static, dt=state.dt)
+        state.T_start = est.T_curr_prev
+
+
+class StaticRefinementStage:
+    """Flow-guided point-to-plane ICP of the static points onto scan k, snapped pairs."""
+
+    name = "refine"
+
+    def __init__(self, config: SsfConfig):
+        self.options = config.refine
+
+    def run(self, state: PairState) -> None:
+        from flowslam.sceneflow.refinement.static import refine_static_flow
+
+        state.refined = refine_static_flow(state.prev.points, state.flow, state.static, state.frame.points,
+                                           state.T_start, self.options)
+        state.stats.update(state.refined.stats, refine_accepted=state.refined.accepted)
+
+
+class FlowToPoseStage:
+    """The odometry measurement: ``FlowToPose`` on the refined static pairs when the
+    refinement was accepted, else on the network's static flow."""
+
+    name = "flow_to_pose"
+
+    def __init__(self, flow_odometry: FlowOdometryConfig):
+        self.flow_to_pose = FlowToPose(flow_odometry)
+
+    def run(self, state: PairState) -> None:
+        if state.refinement_accepted:
+            state.estimate = self.flow_to_pose.estimate(state.refined.points, state.refined.flow, dt=state.dt)
+        else:
+            state.estimate = self.flow_to_pose.estimate(state.prev.points, state.flow, static_mask=state.static,
+                                                        dt=state.dt)
+
+
+class ObjectsStage:
+    """Moving objects against scan k: candidates (network dynamic, tracked movers, geometric
+    movers) -> per-object ICP -> flow, dynamic labels and instances. Needs an accepted
+    static refinement (the ego motion it verifies objects against); keeps the network's
+    output otherwise."""
+
+    name = "objects"
+
+    def __init__(self, config: SsfConfig):
+        from flowslam.sceneflow.refinement.tracking import MoverPrior
+
+        self.options = config.objects
+        self.movers = MoverPrior(self.options.track_radius_m)
+
+    def run(self, state: PairState) -> None:
+        from scipy.spatial import cKDTree
+
+        from flowslam.sceneflow.refinement.objects import refine_objects
+        from flowslam.sceneflow.refinement.visibility import geometric_movers
+
+        if not state.refinement_accepted:
+            return
+        c, prev, T_ego = self.options, state.prev.points, state.estimate.T_curr_prev
+        tracked, tracked_flow = self.movers.predict(prev, T_ego)
+        flow = np.where(tracked[:, None], tracked_flow, state.flow)  # last pair's movers, moved on
+        dynamic = ~state.static | tracked
+        movers = seen = None
+        if c.motion_evidence.enabled:
+            movers, seen = geometric_movers(prev, state.frame.points, T_ego, c.motion_evidence)
+        objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
+                                 cKDTree(state.refined.target_points), movers, seen)
+        accepted = np.array([o["accepted"] for o in objects.objects] + [False])  # [-1] -> False
+        state.flow, state.static = objects.flow, ~objects.dynamic
+        state.instance = np.where(accepted[objects.instance], objects.instance, -1)
+        self.movers.update(prev, objects.flow, objects.dynamic, T_ego)
+        state.stats.update(objects.stats, tracked_candidates=int(tracked.sum()))
+
+
+class RigidStaticFlowStage:
+    """Objects off: the static points get the rigid flow of the measurement (when the
+    refinement was accepted); the others keep the network's flow."""
+
+    name = "static_flow"
+
+    def run(self, state: PairState) -> None:
+        if not state.refinement_accepted:
+            return
+        p, static = state.prev.points, state.static
+        state.flow = state.flow.copy()
+        state.flow[static] = geometry.transform_points(state.estimate.T_curr_prev, p[static]) - p[static]
+
+
+def build_stages(config: SsfConfig, flow_odometry: FlowOdometryConfig) -> list[Stage]:
+    """The stage chain for ``config`` (module doc): the network always; ``pose_start`` and
+    ``refine`` when ``refine.enabled``; ``flow_to_pose``; then ``objects`` (or
+    ``static_flow`` with ``objects.enabled: false``) when ``refine.enabled``."""
+    stages: list[Stage] = [NetworkStage(config)]
+    if config.refine.enabled:
+        stages += [PoseStartStage(config, flow_odometry), StaticRefinementStage(config)]
+    stages.append(FlowToPoseStage(flow_odometry))
+    if config.refine.enabled:
+        stages.append(ObjectsStage(config) if config.objects.enabled else RigidStaticFlowStage())
+    return stages
