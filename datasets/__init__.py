@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from flowslam.config.dataset import DatasetConfig
-from flowslam.datasets.frame import Dataset, Frame
+from flowslam.frame import Dataset, Frame
 from flowslam.errors import InputError
 
 __all__ = ["Dataset", "Frame", "open_dataset", "frame_range", "available_formats", "register_format"]

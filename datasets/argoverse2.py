@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from flowslam import geometry
-from flowslam.datasets.frame import Dataset, Frame
+from flowslam.frame import Dataset, Frame
 from flowslam.datasets.pose_interpolation import ScanPoses, poses_at_scans
 from flowslam.errors import InputError
 

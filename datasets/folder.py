@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flowslam.datasets.frame import ScanFileDataset
+from flowslam.frame import ScanFileDataset
 from flowslam.datasets.scan_files import (
     DEFAULT_SCAN_PERIOD,
     SCAN_SUFFIXES,

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from flowslam import geometry
-from flowslam.datasets.frame import ScanFileDataset
+from flowslam.frame import ScanFileDataset
 from flowslam.datasets.scan_files import DEFAULT_SCAN_PERIOD, natural_key, read_kitti_bin, read_times_file
 from flowslam.errors import InputError
 from flowslam.trajectory import read_trajectory

@@ -32,7 +32,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from flowslam import geometry
-from flowslam.datasets.frame import Dataset, Frame, sanitize_frame
+from flowslam.frame import Dataset, Frame, sanitize_frame
 from flowslam.datasets.pointcloud2 import POINTCLOUD2, decode_pointcloud2, stamp_to_ns
 from flowslam.datasets.pose_interpolation import ScanPoses, poses_at_scans
 from flowslam.errors import InputError

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flowslam.datasets.frame import Frame
+from flowslam.frame import Frame
 from flowslam.datasets.kitti import KittiOdometry
 from flowslam.errors import InputError
 

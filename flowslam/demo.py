@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 
 from flowslam.config import PipelineConfig
-from flowslam.datasets.frame import Frame
+from flowslam.frame import Frame
 from flowslam.interfaces import FrontendOutput
 
 log = logging.getLogger(__name__)

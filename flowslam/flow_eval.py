@@ -20,7 +20,7 @@ import numpy as np
 
 from flowslam import geometry
 from flowslam.config import PipelineConfig
-from flowslam.datasets.frame import Frame
+from flowslam.frame import Frame
 from flowslam.interfaces import FrontendOutput
 from flowslam.sceneflow.metrics import flow_metrics
 

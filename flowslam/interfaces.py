@@ -25,7 +25,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from flowslam.datasets.frame import Frame
+from flowslam.frame import Frame
 
 
 @dataclass

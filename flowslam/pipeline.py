@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from flowslam.datasets.frame import Dataset, Frame
+from flowslam.frame import Dataset, Frame
 from flowslam.interfaces import Backend, Frontend, FrontendOutput, LoopCloser, LoopClosure
 from flowslam.trajectory import Trajectory
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from flowslam.datasets.frame import Frame
+from flowslam.frame import Frame
 from flowslam.errors import InputError
 from flowslam.config import FlowOdometryConfig
 from flowslam.flow_odometry import FlowToPose

@@ -13,7 +13,7 @@ import numpy as np
 
 from flowslam import geometry
 from flowslam.config import KissIcpConfig, PipelineConfig
-from flowslam.datasets.frame import Frame
+from flowslam.frame import Frame
 from flowslam.interfaces import FrontendOutput
 
 

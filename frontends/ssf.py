@@ -39,7 +39,7 @@ from collections import deque
 import numpy as np
 
 from flowslam.config import FlowOdometryConfig, PipelineConfig, SsfConfig
-from flowslam.datasets.frame import Frame
+from flowslam.frame import Frame
 from flowslam.frontends.ssf_stages import NetworkStage, PairState, build_stages
 from flowslam.interfaces import FrontendOutput
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from flowslam import geometry
 from flowslam.config import FlowOdometryConfig, SsfConfig
-from flowslam.datasets.frame import Frame
+from flowslam.frame import Frame
 from flowslam.flow_odometry import FlowPoseEstimate, FlowToPose
 from flowslam.sceneflow.refinement.static import RefinedFlow
 

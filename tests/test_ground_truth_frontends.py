@@ -13,7 +13,7 @@ import pytest
 from flowslam import geometry
 from flowslam.config import load_config
 from flowslam.datasets import open_dataset
-from flowslam.datasets.frame import Frame
+from flowslam.frame import Frame
 from flowslam.errors import InputError
 from flowslam.config import FlowOdometryConfig
 from flowslam.fallbacks import summarize_fallbacks

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from flowslam import geometry
-from flowslam.datasets.frame import Frame
+from flowslam.frame import Frame
 from flowslam.interfaces import FrontendOutput
 from flowslam.moving_objects import CSV_HEADER, MovingObjectsLog, ego_compensated_flow, moving_objects
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from flowslam import geometry
 from flowslam.config.training import PriorNoise
-from flowslam.datasets.frame import Dataset, Frame
+from flowslam.frame import Dataset, Frame
 
 
 

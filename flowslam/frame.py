@@ -14,6 +14,13 @@ Frames and units
 - ``gt_dynamic``: optional (N,) bool, the point moves in the world.
 - ``gt_class``: optional (N,) int semantic class ids (dataset-specific).
 - ``gt_instance``: optional (N,) int instance/track ids (-1 = none).
+- ``extras``: reader-specific values; per-point arrays there are filtered with the
+  points. Scene-flow labels every labelled reader provides: ``av2_category`` (N,) int
+  (Argoverse 2 category index) and ``is_ground`` (N,) bool.
+
+This is the data contract of the pipeline, kept beside the processing contracts
+(``Frontend``/``Backend`` in :mod:`flowslam.interfaces`); the readers that implement
+``Dataset`` live in ``flowslam.datasets``.
 """
 
 from __future__ import annotations
