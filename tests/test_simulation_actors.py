@@ -75,9 +75,10 @@ def test_no_actor_overlaps_another_or_the_ego(rush):
 
 
 def test_collision_check_removes_overlapping_actors():
+    from flowslam.simulation.actors import Actor
     from flowslam.simulation.meshes import shape_library
     from flowslam.simulation.paths import PoseTrack
-    from flowslam.simulation.traffic import Actor, validate
+    from flowslam.simulation.traffic_validation import validate
 
     times = np.arange(0, 1.01, 0.1)
     shapes = shape_library()

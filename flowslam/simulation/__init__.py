@@ -12,10 +12,14 @@ Library entry points (imported lazily, so ``import flowslam.simulation`` is chea
 Modules, one job each: ``sensors`` (LiDAR models), ``meshes`` (primitives, actor
 shapes), ``paths`` (polylines, pose tracks), ``roads`` (road networks, lanes,
 crosswalks), ``town`` (the static world), ``ego_path`` (the ego's route and motion),
-``traffic`` (actors' kinematics, collision check), ``selection`` (actors for a target
-amount of dynamic points), ``raycast`` (Open3D ray casting), ``ground_truth`` (points,
-flow, labels), ``presets``, ``writer``, ``scene_io`` (actors.npz, town.npz),
-``preview``, ``demo``. The reader is ``flowslam.datasets.simulated``.
+``traffic`` (``simulate_traffic``: runs the traffic stages below), ``traffic_spec``
+(``TrafficSpec``, ``DT``), ``traffic_scripted`` (convoy, oncoming stream, the ego
+group), ``traffic_spawn`` (placing actors), ``traffic_stepping`` (IDM kinematics, right
+of way), ``traffic_validation`` (footprint overlap checks), ``actors`` (``Actor``,
+``ActorSet``), ``selection`` (actors for a target amount of dynamic points),
+``raycast`` (Open3D ray casting), ``ground_truth`` (points, flow, labels),
+``presets``, ``writer``, ``scene_io`` (actors.npz, town.npz), ``preview``, ``demo``.
+The reader is ``flowslam.datasets.simulated``.
 """
 
 from __future__ import annotations

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from flowslam.errors import InputError
-from flowslam.simulation.paths import Polyline, PoseTrack, concat_polylines, wrap_angle
+from flowslam.simulation.paths import Polyline, PoseTrack, concat_polylines
 from flowslam.simulation.roads import RoadNetwork
 
 
@@ -276,7 +276,3 @@ def trajectory_motion(times, x, y, yaw, frames: int | None, vehicle_center_x: fl
     s_track = PoseTrack(t_ext, s, np.zeros_like(s), np.zeros_like(s))
     return EgoMotion(route, s_track, sensor, frame_times, vehicle_center_x=vehicle_center_x,
                      description=f"given trajectory, {frames} frames")
-
-
-def heading_change(yaw: np.ndarray) -> np.ndarray:
-    return np.abs(wrap_angle(np.diff(yaw)))

@@ -85,7 +85,6 @@ def make_frame(raw: RawScan, caster: Raycaster, ego: PoseTrack, t0: float, t1: f
     p = (caster.offsets[beam] + r[:, None] * d).astype(np.float32)
     p64 = p.astype(np.float64)
     px, py = p64[:, 0], p64[:, 1]
-    h = sensor.ground_height
     # sensor poses at the firing time and at the same phase of the next sweep (per column,
     # gathered per point; cos/sin per column only)
     e0x, e0y, e0yaw = ego.at(t0 + raw.column_times)

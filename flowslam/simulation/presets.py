@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 from flowslam.errors import InputError
 from flowslam.simulation.town import TownStyle
-from flowslam.simulation.traffic import TrafficSpec
+from flowslam.simulation.traffic_spec import TrafficSpec
 
 
 @dataclass(frozen=True)

@@ -19,10 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flowslam.simulation.actors import ActorSet
 from flowslam.simulation.paths import PoseTrack
 from flowslam.simulation.sensors import SensorModel
 from flowslam.simulation.town import StaticWorld
-from flowslam.simulation.traffic import ActorSet
 
 
 @dataclass

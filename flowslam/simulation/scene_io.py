@@ -1,4 +1,5 @@
-"""Saving and loading the simulated scene next to the frames: ``actors.npz`` and ``town.npz``.
+"""Saving the simulated scene next to the frames (``actors.npz``, ``town.npz``) and loading
+``actors.npz`` back (``load_actors``; ``town.npz`` is a plain ``np.load``).
 
 ``actors.npz`` (town frame, metres, radians, seconds on the frames' time axis):
 
@@ -126,8 +127,3 @@ def load_actors(path: str | Path) -> SceneRecord:
         actor_ids=z["ids"], actor_kinds=z["kinds"], actor_shape=z["shape"], actor_tracks=tracks,
         alive=z["alive"], times=times, shapes=shapes, T_town_first=z["T_town_first"],
     )
-
-
-def load_town(path: str | Path) -> dict[str, np.ndarray]:
-    z = np.load(Path(path))
-    return {k: z[k] for k in z.files}

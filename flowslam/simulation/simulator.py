@@ -21,6 +21,7 @@ import os
 import shutil
 import time
 from pathlib import Path
+from queue import Empty
 from typing import Callable
 
 import numpy as np
@@ -90,7 +91,8 @@ def build_scene(preset: Preset, frames: int, seed: int, sensor, *, trajectory=No
     from flowslam.simulation.meshes import shape_library
     from flowslam.simulation.roads import grid_network, path_network
     from flowslam.simulation.town import build_town
-    from flowslam.simulation.traffic import DT, simulate_traffic
+    from flowslam.simulation.traffic import simulate_traffic
+    from flowslam.simulation.traffic_spec import DT
 
     ss = np.random.SeedSequence([int(seed), 0x5EED])
     net_rng, ego_rng, town_rng, traffic_rng = (np.random.default_rng(s) for s in ss.spawn(4))
@@ -345,7 +347,7 @@ def _render(out_dir, world, actors, sensor, ego, distortion, seed, frames, compr
         while finished < workers:
             try:
                 kind, k, payload = queue.get(timeout=5.0)
-            except Exception:
+            except Empty:  # nothing for 5 s: carry on unless a worker died without reporting
                 dead = [p for p in procs if not p.is_alive() and p.exitcode not in (0, None)]
                 if dead or not any(p.is_alive() for p in procs):
                     raise RuntimeError(

@@ -359,7 +359,7 @@ def _fences(b: _Builder, grid: _Grid, rng, style: TownStyle) -> None:
             wall = rng.random() < 0.35
             height = rng.uniform(1.8, 2.8) if wall else rng.uniform(1.0, 1.8)
             thick = 0.3 if wall else 0.08
-            pieces, foot = [], []
+            pieces = []
             ss = s
             while ss < min(s + seg_len, line.length - 2.0):
                 p0, p1 = line.position(ss), line.position(ss + 2.0)
