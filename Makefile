@@ -1,5 +1,5 @@
 # The two commands of the README:
-#   make demo   simulates the embedded default sequence once, runs every frontend x backend
+#   make demo   simulates the embedded default sequence once, runs the main frontends x backends
 #               on it and prints the errors (creates .venv on first use; no data needed)
 #   make test   runs the test suite (creates .venv on first use)
 # Also: make kitti   runs kiss-icp on the real KITTI extract in $(DATA)

@@ -253,16 +253,16 @@ def demo_command(
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Where the demo sequence is cached."),
     refresh: bool = typer.Option(False, "--refresh", help="Simulate the demo sequence again."),
     output_dir: Path = typer.Option(Path("results"), "--output-dir", "-o", help="Where run folders go."),
-    frontends: Optional[list[str]] = typer.Option(None, "--frontend", "-f", help="Only these frontends (repeatable)."),
+    frontends: Optional[list[str]] = typer.Option(
+        None, "--frontend", "-f", help="These frontends (repeatable; default kiss-icp, ssf, gt, gt-flow)."),
     no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bars."),
 ):
-    """No data needed: simulate the default sequence once, run every frontend x backend, print errors."""
+    """No data needed: simulate the default sequence once, run the main frontends x backends, print errors."""
     with _user_errors():
         from rich.console import Console
 
         from flowslam.config import load_config
-        from flowslam.demo import demo_failures, demo_table, run_demo
-        from flowslam.registry import frontend_names
+        from flowslam.demo import DEMO_FRONTENDS, demo_failures, demo_table, run_demo
         from flowslam.results import create_results_dir
         from flowslam.simulation import ensure_demo_sequence
 
@@ -272,7 +272,7 @@ def demo_command(
         sequence = ensure_demo_sequence(cache_dir, refresh=refresh)
         demo_dir = create_results_dir(output_dir, "demo")
         cfg = load_config(output_dir=str(demo_dir))
-        chosen = frontends or frontend_names()
+        chosen = frontends or list(DEMO_FRONTENDS)
         if no_progress:
             rows = run_demo(sequence, cfg, chosen)
         else:
@@ -282,6 +282,59 @@ def demo_command(
         for line in demo_failures(rows):
             typer.echo(f"not run: {line}", err=True)
         typer.echo(f"sequence {sequence}; runs and plots in {demo_dir}; {time.perf_counter() - t0:.0f} s in all")
+
+
+@app.command("bench")
+def bench_command(
+    sequences: Optional[list[Path]] = typer.Option(
+        None, "--sequence", "-s", help="Also run on this sequence (repeatable; any format `run` reads)."),
+    frontends: Optional[list[str]] = typer.Option(
+        None, "--frontend", "-f", help="Only these frontends (repeatable; default: every baseline and ablation)."),
+    no_default_suite: bool = typer.Option(False, "--no-default-suite", help="Only the --sequence ones."),
+    frames: Optional[int] = typer.Option(None, "--frames", help="Shorten the default suite's sequences (quick look)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config applied to every run."),
+    output_dir: Path = typer.Option(Path("results"), "--output-dir", "-o", help="Where the bench folder goes."),
+    resume: Optional[Path] = typer.Option(None, "--resume", help="Go on with the unfinished bench in this folder."),
+    cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Where simulated sequences are cached."),
+    no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bars."),
+):
+    """Frontends x (a-loam, s-loam) x sequences: SSF-PAN Table I, runtime vs RPE, trajectories."""
+    with _user_errors():
+        from flowslam.benchmark.runner import BenchStopped, run_bench, start_bench
+        from flowslam.benchmark.suite import DEFAULT_FRONTENDS, default_sequences
+        from flowslam.config import load_config
+        from flowslam.errors import InputError
+        from flowslam.registry import frontend_names
+        from flowslam.results import create_results_dir
+
+        t0 = time.perf_counter()
+        if resume is not None:
+            if sequences or frontends or no_default_suite or frames or config:
+                raise InputError(resume, "--resume goes on with the bench as it was started; give no other choices")
+            bench_dir = resume
+        else:
+            chosen = list(frontends or DEFAULT_FRONTENDS)
+            unknown = sorted(set(chosen) - set(frontend_names()))
+            if unknown:
+                raise InputError(None, f"unknown frontend(s) {', '.join(unknown)}; available: {', '.join(frontend_names())}")
+            cfg = load_config(config)
+            runs: dict[str, Path] = {} if no_default_suite else default_sequences(cache_dir, frames)
+            for path in sequences or []:
+                if not path.exists():
+                    raise InputError(path, "does not exist")
+                runs[path.name if path.name not in runs else f"{path.parent.name}_{path.name}"] = path
+            if not runs:
+                raise InputError(None, "no sequences: drop --no-default-suite or add --sequence PATH")
+            bench_dir = create_results_dir(output_dir, "bench")
+            start_bench(bench_dir, runs, chosen, cfg)
+        typer.echo(f"bench folder: {bench_dir} (resume with `flowslam bench --resume {bench_dir}`)")
+        try:
+            run_bench(bench_dir, progress=not no_progress, say=typer.echo)
+        except BenchStopped as stopped:
+            typer.echo(f"flowslam: {stopped}", err=True)
+            raise typer.Exit(code=1) from None
+        typer.echo((bench_dir / "table1.md").read_text())
+        typer.echo(f"report in {bench_dir}; {time.perf_counter() - t0:.0f} s in all")
 
 
 @app.command("flow-eval")

@@ -1,4 +1,4 @@
-"""``flowslam demo``: every frontend x backend on the embedded simulated sequence, one table.
+"""``flowslam demo``: frontends x backends on the embedded simulated sequence, one table.
 
 The sequence is simulated once into a cache (``flowslam.simulation.demo``). Each
 frontend runs once (with the ``odometry`` backend); its measurements are recorded
@@ -18,38 +18,16 @@ from typing import Callable
 import numpy as np
 
 from flowslam.config import PipelineConfig
-from flowslam.frame import Frame
-from flowslam.interfaces import FrontendOutput
+from flowslam.replay import RecordingFrontend, ReplayFrontend
 
 log = logging.getLogger(__name__)
 
+DEMO_FRONTENDS = ("kiss-icp", "ssf", "gt", "gt-flow")
+"""The demo's default frontends: the main one, the KISS-ICP baseline and the GT bounds (the
+slower baselines and ablations are ``flowslam bench``'s; ``-f`` picks any)."""
+
 DEMO_BACKENDS = ("odometry", "isam2")
 """isam2 runs its default ``s-loam`` variant (``a-loam`` equals ``odometry`` on the same measurements)."""
-
-
-class RecordingFrontend:
-    """Wraps a frontend and keeps its motion measurements (not its per-point outputs)."""
-
-    def __init__(self, inner):
-        self.inner, self.name = inner, inner.name
-        self.records: dict[int, FrontendOutput] = {}
-
-    def process(self, frame: Frame) -> FrontendOutput:
-        out = self.inner.process(frame)
-        self.records[frame.index] = FrontendOutput(
-            index=out.index, T_prev_curr=out.T_prev_curr, covariance=out.covariance, stats=out.stats
-        )
-        return out
-
-
-class ReplayFrontend:
-    """Returns recorded measurements in order (same odometry for another backend)."""
-
-    def __init__(self, name: str, records: dict[int, FrontendOutput]):
-        self.name, self.records = name, records
-
-    def process(self, frame: Frame) -> FrontendOutput:
-        return self.records[frame.index]
 
 
 @dataclass

@@ -25,6 +25,10 @@ _FRONTENDS: dict[str, Factory | str] = {
     "gt": "flowslam.frontends.ground_truth:make_gt_frontend",
     "gt-flow": "flowslam.frontends.ground_truth:make_gt_flow_frontend",
     "ssf": "flowslam.frontends.ssf:make_frontend",
+    "ransac": "flowslam.frontends.ransac:make_frontend",
+    "sf": "flowslam.frontends.ssf_ablations:make_sf_frontend",
+    "gt-seg": "flowslam.frontends.ssf_ablations:make_gt_seg_frontend",
+    "gt-flow+ssf-seg": "flowslam.frontends.ssf_ablations:make_gt_flow_ssf_seg_frontend",
 }
 _BACKENDS: dict[str, Factory | str] = {
     "odometry": "flowslam.backends.odometry:make_backend",

@@ -85,6 +85,7 @@ def run_sequence(
     on_frame: Callable[[int, float], None] | None = None,
     frontend: Frontend | None = None,
     tag: str | None = None,
+    run_dir: Path | None = None,
 ) -> RunOutcome:
     """Run ``config.frontend`` + ``config.backend`` on the sequence at ``path``.
 
@@ -94,15 +95,20 @@ def run_sequence(
     (a missing path, an unknown frontend) raise directly.
     ``on_start(n_frames)`` / ``on_frame(k, seconds)`` drive a progress display.
     ``frontend`` overrides ``config.frontend`` with an instance (e.g. a replay of
-    recorded measurements); ``tag`` names the results folder.
+    recorded measurements); ``tag`` names the results folder; ``run_dir`` (created if
+    missing) replaces the timestamped folder and leaves ``latest`` alone.
     """
     dataset = open_dataset(path, config.dataset)
     frames = frame_range(len(dataset), config.dataset)
     frontend = frontend or make_frontend(config.frontend, config)
     backend = make_backend(config.backend, config)
-    run_dir = create_results_dir(
-        config.output_dir, tag or f"{Path(path).name}_{config.frontend}_{config.backend}"
-    )
+    if run_dir is None:
+        run_dir = create_results_dir(
+            config.output_dir, tag or f"{Path(path).name}_{config.frontend}_{config.backend}"
+        )
+    else:
+        run_dir = Path(run_dir)
+        run_dir.mkdir(parents=True, exist_ok=True)
     log.info("%s -> %s", dataset.describe(), run_dir)
     sinks = _OutputSinks(config)
     if on_start is not None:

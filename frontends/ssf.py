@@ -40,7 +40,7 @@ import numpy as np
 
 from flowslam.config import FlowOdometryConfig, PipelineConfig, SsfConfig
 from flowslam.frame import Frame
-from flowslam.frontends.ssf_stages import NetworkStage, PairState, build_stages
+from flowslam.frontends.ssf_stages import NetworkStage, PairState, Stage, build_stages
 from flowslam.interfaces import FrontendOutput
 
 
@@ -49,9 +49,15 @@ class SsfFrontend:
 
     name = "ssf"
 
-    def __init__(self, options: SsfConfig | None = None, flow_odometry: FlowOdometryConfig | None = None):
+    def __init__(self, options: SsfConfig | None = None, flow_odometry: FlowOdometryConfig | None = None,
+                 stages: list[Stage] | None = None, name: str | None = None):
+        """``stages``: another chain (it must hold a ``NetworkStage``), e.g. the ablations of
+        ``flowslam.frontends.ssf_ablations``; default ``build_stages(options, flow_odometry)``."""
         self.options = options or SsfConfig()
-        self.stages = build_stages(self.options, flow_odometry or FlowOdometryConfig())
+        if stages is None:
+            stages = build_stages(self.options, flow_odometry or FlowOdometryConfig())
+        self.stages = stages
+        self.name = name or self.name
         network = next(s for s in self.stages if isinstance(s, NetworkStage))
         self.num_frames = network.num_frames
         self._frames: deque[Frame] = deque(maxlen=self.num_frames - 1)
@@ -77,7 +83,8 @@ class SsfFrontend:
         self._last_motion = est.T_prev_curr
         self._frames.append(frame)
         self._poses.append(T_world_prev @ est.T_prev_curr)
-        stats = dict(est.stats, dynamic_points=int((~state.static).sum()), **state.stats, stage_ms=laps)
+        dynamic = {} if state.static is None else {"dynamic_points": int((~state.static).sum())}  # None: unsegmented
+        stats = dict(est.stats, **dynamic, **state.stats, stage_ms=laps)
         return FrontendOutput(
             index=frame.index, T_prev_curr=est.T_prev_curr, covariance=est.covariance,
             points=state.prev.points, flow=state.flow, static_mask=state.static,

@@ -10,6 +10,7 @@ from here, never the reverse. ``PipelineConfig`` holds them all (one YAML file):
 - ``training`` (:mod:`.training`).
 """
 
+from flowslam.config.baselines import RansacConfig
 from flowslam.config.dataset import DatasetConfig
 from flowslam.config.describe import dump_config, missing_descriptions
 from flowslam.config.isam2 import Isam2Config
@@ -26,7 +27,7 @@ from flowslam.config.training import PriorNoise, TrainConfig
 __all__ = [
     "DatasetConfig", "FlowOdometryConfig", "FlowRefinementConfig", "Isam2Config", "KissIcpConfig",
     "LoopClosureConfig", "MotionEvidenceConfig", "NetworkStageConfig", "ObjectRefinementConfig",
-    "OutputConfig", "PipelineConfig", "PoseStartConfig", "PriorNoise", "ScanContextConfig", "SsfConfig",
-    "TrainConfig", "VARIANTS", "VerificationConfig", "dump_config", "load_config",
+    "OutputConfig", "PipelineConfig", "PoseStartConfig", "PriorNoise", "RansacConfig", "ScanContextConfig",
+    "SsfConfig", "TrainConfig", "VARIANTS", "VerificationConfig", "dump_config", "load_config",
     "load_training_config", "missing_descriptions",
 ]

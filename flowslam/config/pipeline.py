@@ -14,6 +14,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from flowslam.config.base import StrictModel
+from flowslam.config.baselines import RansacConfig
 from flowslam.config.dataset import DatasetConfig
 from flowslam.config.isam2 import Isam2Config
 from flowslam.config.loop_closure import LoopClosureConfig
@@ -39,6 +40,8 @@ class PipelineConfig(StrictModel):
     """Optional outputs of a run."""
     kiss_icp: KissIcpConfig = KissIcpConfig()
     """The ``kiss-icp`` frontend."""
+    ransac: RansacConfig = RansacConfig()
+    """The ``ransac`` frontend (FPFH + RANSAC global registration, SSF-PAN's baseline)."""
     flow_odometry: FlowOdometryConfig = FlowOdometryConfig()
     """Flow pairs -> relative pose, for every flow frontend (``ssf``, ``gt``, ``gt-flow``)."""
     ssf: SsfConfig = SsfConfig()

@@ -7,6 +7,8 @@ Library entry points (imported lazily, so ``import flowslam.simulation`` is chea
   (``simulator.py``, ``writer.py``);
 - ``write_preview(out_dir) -> Path``: a PNG top view of a simulated sequence;
 - ``ensure_demo_sequence(cache_dir=None) -> Path``: the embedded default sequence;
+  ``ensure_sequence(name, settings, cache_dir=None) -> Path``: any simulated sequence,
+  cached the same way (the benchmark suite);
 - ``PRESETS`` / ``preset_names()`` and ``SENSORS`` / ``sensor_names()``.
 
 Modules, one job each: ``sensors`` (LiDAR models), ``meshes`` (primitives, actor
@@ -25,13 +27,14 @@ The reader is ``flowslam.datasets.simulated``.
 from __future__ import annotations
 
 __all__ = [
-    "simulate", "write_preview", "ensure_demo_sequence", "PRESETS", "preset_names", "SENSORS", "sensor_names",
+    "simulate", "write_preview", "ensure_demo_sequence", "ensure_sequence", "PRESETS", "preset_names", "SENSORS", "sensor_names",
 ]
 
 _LAZY = {
     "simulate": ("flowslam.simulation.simulator", "simulate"),
     "write_preview": ("flowslam.simulation.preview", "write_preview"),
     "ensure_demo_sequence": ("flowslam.simulation.demo", "ensure_demo_sequence"),
+    "ensure_sequence": ("flowslam.simulation.demo", "ensure_sequence"),
     "PRESETS": ("flowslam.simulation.presets", "PRESETS"),
     "preset_names": ("flowslam.simulation.presets", "preset_names"),
     "SENSORS": ("flowslam.simulation.sensors", "SENSORS"),

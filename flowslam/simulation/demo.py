@@ -1,4 +1,5 @@
-"""The embedded default sequence of ``flowslam demo``: simulated once, then reused.
+"""Simulated sequences cached for reuse: the embedded default of ``flowslam demo`` (and
+the default suite of ``flowslam bench``), simulated once, then reused.
 
 ``ensure_demo_sequence()`` returns the root of a simulated sequence (``manifest.json``,
 KITTI layout; ``open_dataset`` reads it): preset ``demo`` (a small procedural town,
@@ -29,11 +30,17 @@ def demo_cache_root(cache_dir: str | Path | None = None) -> Path:
     return Path(env).expanduser() if env else Path.home() / ".cache" / "flowslam"
 
 
-def demo_sequence_path(cache_dir: str | Path | None = None) -> Path:
-    """Where the demo sequence is (or will be) cached."""
+def cached_sequence_path(name: str, settings: dict, cache_dir: str | Path | None = None) -> Path:
+    """Where the sequence simulated with ``settings`` (arguments of ``simulate()``) is, or
+    will be, cached: ``<cache>/<name>-<hash of the settings and the simulator version>``."""
     from flowslam.simulation.simulator import settings_hash
 
-    return demo_cache_root(cache_dir) / f"demo-{settings_hash(**DEMO_SETTINGS)}"
+    return demo_cache_root(cache_dir) / f"{name}-{settings_hash(**settings)}"
+
+
+def demo_sequence_path(cache_dir: str | Path | None = None) -> Path:
+    """Where the demo sequence is (or will be) cached."""
+    return cached_sequence_path("demo", DEMO_SETTINGS, cache_dir)
 
 
 def ensure_demo_sequence(cache_dir: str | Path | None = None, *, refresh: bool = False,
@@ -43,9 +50,16 @@ def ensure_demo_sequence(cache_dir: str | Path | None = None, *, refresh: bool =
     ``refresh=True`` simulates it again. ``progress(done, total)`` is called per frame
     while simulating (not at all when the cache is used).
     """
+    return ensure_sequence("demo", DEMO_SETTINGS, cache_dir, refresh=refresh, progress=progress)
+
+
+def ensure_sequence(name: str, settings: dict, cache_dir: str | Path | None = None, *, refresh: bool = False,
+                    progress: Callable[[int, int], None] | None = None) -> Path:
+    """The root folder of the sequence ``simulate(**settings)`` makes, simulating it first
+    if it is not cached (written to a temporary folder, renamed when complete)."""
     from flowslam.simulation.simulator import simulate
 
-    target = demo_sequence_path(cache_dir)
+    target = cached_sequence_path(name, settings, cache_dir)
     if (target / "manifest.json").is_file() and not refresh:
         return target
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -53,7 +67,7 @@ def ensure_demo_sequence(cache_dir: str | Path | None = None, *, refresh: bool =
     if tmp.exists():
         shutil.rmtree(tmp)
     try:
-        simulate(tmp, progress=progress, **DEMO_SETTINGS)
+        simulate(tmp, progress=progress, **settings)
         if target.exists():
             shutil.rmtree(target)
         tmp.rename(target)
