@@ -296,6 +296,8 @@ def bench_command(
     output_dir: Path = typer.Option(Path("results"), "--output-dir", "-o", help="Where the bench folder goes."),
     resume: Optional[Path] = typer.Option(None, "--resume", help="Go on with the unfinished bench in this folder."),
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Where simulated sequences are cached."),
+    jobs: Optional[int] = typer.Option(
+        None, "--jobs", "-j", min=1, help="Cells run at once, one OpenMP thread each when > 1 (default 1)."),
     no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bars."),
 ):
     """Frontends x (a-loam, s-loam) x sequences: SSF-PAN Table I, runtime vs RPE, trajectories."""
@@ -326,10 +328,10 @@ def bench_command(
             if not runs:
                 raise InputError(None, "no sequences: drop --no-default-suite or add --sequence PATH")
             bench_dir = create_results_dir(output_dir, "bench")
-            start_bench(bench_dir, runs, chosen, cfg)
+            start_bench(bench_dir, runs, chosen, cfg, jobs or 1)
         typer.echo(f"bench folder: {bench_dir} (resume with `flowslam bench --resume {bench_dir}`)")
         try:
-            run_bench(bench_dir, progress=not no_progress, say=typer.echo)
+            run_bench(bench_dir, progress=not no_progress, jobs=jobs, say=typer.echo)
         except BenchStopped as stopped:
             typer.echo(f"flowslam: {stopped}", err=True)
             raise typer.Exit(code=1) from None

@@ -82,8 +82,13 @@ def test_bench_refuses_what_it_cannot_run(tmp_path, kitti_extract):
     assert proc.returncode == 2 and "no sequences" in proc.stderr
     proc = flowslam("bench", "--no-default-suite", "-s", kitti_extract, "-f", "nope", "-o", tmp_path)
     assert proc.returncode == 2 and "unknown frontend" in proc.stderr
-    # an ablation without the GT it needs is a table entry, not a crash
-    proc = flowslam("bench", "--no-default-suite", "-s", kitti_extract, "-f", "gt", "--no-progress", "-o", tmp_path)
+    # an ablation without the GT it needs is a table entry, not a crash (two cells at once)
+    proc = flowslam("bench", "--no-default-suite", "-s", kitti_extract, "-f", "gt", "-f", "kiss-icp", "-j", "2",
+                    "--no-progress", "-o", tmp_path)
     assert proc.returncode == 0, proc.stderr
-    table = (_bench_dir(tmp_path) / "table1.md").read_text()
+    bench_dir = _bench_dir(tmp_path)
+    table = (bench_dir / "table1.md").read_text()
     assert "gt on kitti-odometry-00-first16:" in table and "ground-truth flow" in table
+    rows = {(r["variant"], r["frontend"]): r for r in csv.DictReader((bench_dir / "table1.csv").open())}
+    assert float(rows["s-loam", "kiss-icp"]["xyz_rmse"]) < 0.2  # KITTI GT: constant-velocity fill, ~0.1 m
+    assert json.loads((bench_dir / "bench.json").read_text())["info"]["jobs"] == 2

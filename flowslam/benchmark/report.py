@@ -82,7 +82,7 @@ def table1_markdown(rows: list[dict], sequences) -> str:
             for part in ("xyz", "rpy"):
                 for seq in sequences:
                     r = by[variant, fe, seq]
-                    cells += [_f(r.get(f"{part}_{s}")) for s in STATS]
+                    cells += [_f(r.get(f"{part}_{s}"), 4) for s in STATS]
             name = f"{fe} {kind_of(fe).marker}".strip()
             lines.append(f"| {variant} | {name} | " + " | ".join(cells) + " |")
     extra = ["Framework", "Method"] + [f"{c} {seq}" for seq in sequences
