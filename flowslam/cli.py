@@ -95,7 +95,11 @@ def _progress_callbacks(bar, label: str):
 @app.command()
 def run(
     sequence: Path = typer.Argument(..., help="Sequence: KITTI folder, scan folder, ROS bag, AV2 log."),
-    frontend: Optional[str] = typer.Option(None, "--frontend", "-f", help="Frontend name (default kiss-icp)."),
+    frontend: Optional[str] = typer.Option(
+        None, "--frontend", "-f",
+        help="Frontend (default kiss-icp): kiss-icp, ransac, ssf, sf (learned flow, no segmentation); ablations that "
+             "read ground truth, SSF-PAN markers: gt (GT flow + GT segmentation), gt-flow (GT flow, none), "
+             "gt-seg (◐ ssf's flow + GT segmentation), gt-flow+ssf-seg (○ GT flow + ssf's segmentation)."),
     backend: Optional[str] = typer.Option(None, "--backend", "-b", help="Backend name (default odometry)."),
     variant: Optional[str] = typer.Option(
         None, "--variant", help="a-loam (odometry only) or s-loam (loop closure, default; backends that take loops)."),
