@@ -62,6 +62,11 @@ class Frame:
     def __len__(self) -> int:
         return len(self.points)
 
+    @property
+    def where(self) -> str:
+        """The scan's file and index, for error messages ("FILE (frame 12)")."""
+        return f"{self.source or 'frame'} (frame {self.index})"
+
 
 _PER_POINT = ("intensity", "point_times", "gt_flow", "gt_dynamic", "gt_class", "gt_instance")
 

@@ -38,10 +38,6 @@ NO_FLOW_MESSAGE = (
 )
 
 
-def _where(frame: Frame) -> str:
-    return f"{frame.source or 'frame'} (frame {frame.index})"
-
-
 class GroundTruthFlowFrontend:
     """``gt`` (``use_labels=True``) or ``gt-flow`` (``use_labels=False``), see module doc."""
 
@@ -59,7 +55,7 @@ class GroundTruthFlowFrontend:
             return NO_FLOW_MESSAGE
         if self.use_labels and prev.gt_dynamic is None:
             raise InputError(
-                _where(prev),
+                prev.where,
                 "has ground-truth flow but no dynamic labels; the gt frontend needs both "
                 "(use --frontend gt-flow for flow alone)",
             )
@@ -75,7 +71,7 @@ class GroundTruthFlowFrontend:
         problem = self._labels_of(prev)
         if problem is not None:
             if not self._seen_flow:
-                raise InputError(_where(prev), problem)
+                raise InputError(prev.where, problem)
             est = self.odometry.fallback("no_flow", f"frame {prev.index} {problem.split(';')[0]}", len(prev.points), dt)
             return FrontendOutput(
                 index=frame.index, T_prev_curr=est.T_prev_curr, covariance=est.covariance, stats=est.stats

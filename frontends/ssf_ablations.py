@@ -55,7 +55,6 @@ import numpy as np
 from flowslam import geometry
 from flowslam.config import PipelineConfig
 from flowslam.errors import InputError
-from flowslam.frontends.ground_truth import _where
 from flowslam.frontends.ssf import SsfFrontend
 from flowslam.frontends.ssf_stages import FlowToPoseStage, NetworkStage, PairState, Stage, build_stages
 
@@ -75,7 +74,7 @@ class RequireGroundTruthStage:
     def run(self, state: PairState) -> None:
         if getattr(state.prev, self.field) is None:
             raise InputError(
-                _where(state.prev),
+                state.prev.where,
                 f"has no {_GT_FIELDS[self.field]}; the {self.frontend} frontend needs a dataset with "
                 "them (simulated sequences, Argoverse 2 with flow_labels)",
             )
