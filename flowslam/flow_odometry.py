@@ -151,8 +151,6 @@ class FlowToPose:
     def __init__(self, config: FlowOdometryConfig | None = None):
         self.config = config or FlowOdometryConfig()
         self.predictor = ConstantVelocityPredictor(self.config)
-        self.fallbacks: Counter[str] = Counter()
-        """Fallbacks so far, by code (see :data:`flowslam.fallbacks.FALLBACK_CODES`)."""
         self.estimates = 0
         """Calls to :meth:`estimate` / :meth:`fallback` so far."""
 
@@ -293,6 +291,11 @@ class FlowToPose:
         return self._fall_back(code, reason, n_points, dt, {"n_points": n_points}, time.perf_counter())
 
     @property
+    def fallbacks(self) -> Counter[str]:
+        """Fallbacks so far, by code (see :data:`flowslam.fallbacks.FALLBACK_CODES`)."""
+        return self.predictor.fallbacks
+
+    @property
     def fallback_count(self) -> int:
         return int(sum(self.fallbacks.values()))
 
@@ -328,14 +331,8 @@ class FlowToPose:
     def _fall_back(
         self, code: str, reason: str, n: int, dt: float | None, stats: dict, start: float
     ) -> FlowPoseEstimate:
-        T_prev_curr, cov = self.predictor.predict(dt)
-        self.fallbacks[code] += 1
-        log.info("flow odometry fallback to constant velocity: %s", reason)
-        stats.update(
-            fallback=True, reason=reason, fallback_code=code, method="constant-velocity",
-            inliers=0, inlier_ratio=0.0, consecutive_fallbacks=self.predictor.misses,
-            time_ms=(time.perf_counter() - start) * 1e3,
-        )
+        T_prev_curr, cov, marks = self.predictor.fall_back(code, reason, dt)
+        stats.update(marks, inliers=0, inlier_ratio=0.0, time_ms=(time.perf_counter() - start) * 1e3)
         return FlowPoseEstimate(
             T_prev_curr, cov, geometry.inv(T_prev_curr), np.zeros(n, dtype=bool), True, reason, stats
         )

@@ -18,10 +18,15 @@ measurement the prediction is the identity (standing still) with
 
 from __future__ import annotations
 
+import logging
+from collections import Counter
+
 import numpy as np
 
 from flowslam import geometry
 from flowslam.config.odometry import FlowOdometryConfig
+
+log = logging.getLogger(__name__)
 
 __all__ = ["ConstantVelocityPredictor"]
 
@@ -41,6 +46,8 @@ class ConstantVelocityPredictor:
         self.dt: float | None = None
         self.misses = 0
         """Consecutive predictions since the last registered measurement."""
+        self.fallbacks: Counter[str] = Counter()
+        """Fallbacks so far, by code (see :data:`flowslam.fallbacks.FALLBACK_CODES`)."""
 
     def update(self, T_prev_curr: np.ndarray, covariance: np.ndarray, dt: float | None) -> None:
         """Record a registered (non-fallback) measurement."""
@@ -62,3 +69,13 @@ class ConstantVelocityPredictor:
         model = geometry.pose_covariance(np.deg2rad(cfg.fallback_rotation_std_deg), cfg.fallback_translation_std_m)
         cov = cfg.fallback_inflation * self.covariance + self.misses * model
         return T.copy(), cov
+
+    def fall_back(self, code: str, reason: str, dt: float | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+        """The prediction for a pair that could not be registered, counted under ``code``,
+        and the frame stats that say so (what ``summarize_fallbacks`` counts)."""
+        T, cov = self.predict(dt)
+        self.fallbacks[code] += 1
+        log.info("fallback to constant velocity (%s): %s", code, reason)
+        stats = dict(fallback=True, reason=reason, fallback_code=code, method="constant-velocity",
+                     consecutive_fallbacks=self.misses)
+        return T, cov, stats

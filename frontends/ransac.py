@@ -88,7 +88,6 @@ the same, or ICP's), ``points`` / ``target_points`` (downsampled), ``icp_fitness
 
 from __future__ import annotations
 
-import logging
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -101,8 +100,6 @@ from flowslam.frame import Frame
 from flowslam.interfaces import FrontendOutput
 from flowslam.motion_model import ConstantVelocityPredictor
 from flowslam.registration.covariance import covariance_from_residuals
-
-log = logging.getLogger(__name__)
 
 __all__ = ["PairRegistration", "RansacFrontend", "ScanFeatures", "make_frontend"]
 
@@ -147,14 +144,17 @@ class RansacFrontend:
         """``fallback``: the constant-velocity model's options (``flow_odometry`` section)."""
         self.options = options or RansacConfig()
         self.predictor = ConstantVelocityPredictor(fallback or FlowOdometryConfig())
-        self.fallbacks: Counter[str] = Counter()
-        """Fallbacks so far, by code (see :data:`flowslam.fallbacks.FALLBACK_CODES`)."""
         self._prev: ScanFeatures | None = None
         voxel = self.options.voxel_size_m
         self.normal_radius_m = self.options.normal_radius_m or 2.0 * voxel
         self.fpfh_radius_m = self.options.fpfh_radius_m or 5.0 * voxel
         self.distance_m = self.options.max_correspondence_distance_m or 1.5 * voxel
         self.icp_distance_m = self.options.icp_distance_m or 0.4 * voxel
+
+    @property
+    def fallbacks(self) -> Counter[str]:
+        """Fallbacks so far, by code (see :data:`flowslam.fallbacks.FALLBACK_CODES`)."""
+        return self.predictor.fallbacks
 
     # -- features ----------------------------------------------------------------
 
@@ -256,11 +256,8 @@ class RansacFrontend:
             self.predictor.update(T, cov, dt)
             stats.update(fallback=False, reason=None, method="ransac+icp" if self.options.icp_refine else "ransac")
         else:
-            T, cov = self.predictor.predict(dt)
-            self.fallbacks[r.code] += 1
-            log.info("ransac fallback to constant velocity (frame %d): %s", frame.index, r.reason)
-            stats.update(fallback=True, reason=r.reason, fallback_code=r.code, method="constant-velocity",
-                         consecutive_fallbacks=self.predictor.misses)
+            T, cov, marks = self.predictor.fall_back(r.code, r.reason, dt)
+            stats.update(marks)
         stats["time_ms"] = _millis(start)
         return FrontendOutput(index=frame.index, T_prev_curr=T, covariance=cov, stats=stats)
 
