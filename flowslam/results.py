@@ -64,7 +64,12 @@ def _json_default(value):
 
 
 def write_json(path: Path, data: dict) -> None:
-    path.write_text(json.dumps(data, indent=2, default=_json_default, allow_nan=True) + "\n")
+    """``data`` as JSON (numpy values and paths converted), written to a temporary name
+    beside ``path`` and renamed, so a reader never sees half a file."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(data, indent=2, default=_json_default, allow_nan=True) + "\n")
+    os.replace(tmp, path)
 
 
 def write_loops_csv(path: Path, loops) -> None:

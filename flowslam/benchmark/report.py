@@ -15,6 +15,7 @@ import json
 from pathlib import Path
 
 from flowslam.benchmark.suite import VARIANTS, kind_of
+from flowslam.results import write_json
 
 STATS = ("rmse", "sse", "std")
 
@@ -123,5 +124,5 @@ def write_report(bench_dir: Path, sequences: dict, frontends: list[str], info: d
     bench = {"info": info, "sequences": {k: str(v) for k, v in sequences.items()}, "frontends": frontends,
              "config": (bench_dir / "config.yaml").read_text(), "rows": rows,
              "cells": {f"{s}/{f}": c for (s, f), c in cells.items()}}
-    (bench_dir / "bench.json").write_text(json.dumps(bench, indent=1, default=float))
+    write_json(bench_dir / "bench.json", bench)
     return bench

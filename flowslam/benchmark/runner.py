@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Callable
 
 from flowslam import __version__
-from flowslam.config import PipelineConfig, dump_config, load_config
+from flowslam.config import PipelineConfig, dump_config
 from flowslam.errors import InputError
 
 SPEC = "spec.json"
@@ -43,13 +43,14 @@ def start_bench(bench_dir: Path, sequences: dict[str, Path], frontends: list[str
     (bench_dir / SPEC).write_text(json.dumps(spec, indent=1))
 
 
-def read_spec(bench_dir: Path) -> tuple[dict[str, Path], list[str], PipelineConfig]:
+def read_spec(bench_dir: Path) -> tuple[dict[str, Path], list[str], int]:
+    """(sequences by name, frontends, jobs) of the bench in ``bench_dir``; the workers read
+    its ``config.yaml`` themselves."""
     path = bench_dir / SPEC
     if not path.is_file():
         raise InputError(bench_dir, f"not a bench folder (no {SPEC})")
     spec = json.loads(path.read_text())
-    return ({k: Path(v) for k, v in spec["sequences"].items()}, spec["frontends"],
-            load_config(bench_dir / "config.yaml"))
+    return {k: Path(v) for k, v in spec["sequences"].items()}, spec["frontends"], spec.get("jobs", 1)
 
 
 def _worker_command(bench_dir: Path, sequence: Path, frontend: str, out: Path, progress: bool) -> list[str]:
@@ -66,9 +67,8 @@ def run_bench(bench_dir: Path, *, progress: bool = True, jobs: int | None = None
     and no progress bar, and the timings are those of one core per run."""
     from flowslam.benchmark.report import write_report
 
-    sequences, frontends, _ = read_spec(bench_dir)
-    spec = json.loads((bench_dir / SPEC).read_text())
-    jobs = jobs or spec.get("jobs", 1)
+    sequences, frontends, started_with = read_spec(bench_dir)
+    jobs = jobs or started_with
     cells = [(s, f) for s in sequences for f in frontends]
     pending = []
     for k, (seq, fe) in enumerate(cells, 1):

@@ -18,7 +18,6 @@ iSAM2); for ``s-loam`` the frontend pass plus the replay run's time on the same 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import resource
 import time
@@ -27,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from flowslam.config import PipelineConfig, load_config
+from flowslam.results import write_json
 
 
 def _variant_config(config: PipelineConfig, frontend: str, variant: str) -> PipelineConfig:
@@ -50,13 +50,6 @@ def _row(outcome, per_frame: np.ndarray) -> dict:
         "metrics": outcome.metrics,
         "error": None if result.error is None else str(result.error).splitlines()[0],
     }
-
-
-def write_json_atomic(path: Path, data: dict) -> None:
-    """Write ``data`` as JSON to a temporary name beside ``path``, then rename it."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(data, indent=1, default=float))
-    tmp.replace(path)
 
 
 def run_cell(sequence: Path, frontend: str, cell_dir: Path, config: PipelineConfig, progress=None) -> dict:
@@ -91,7 +84,7 @@ def run_cell(sequence: Path, frontend: str, cell_dir: Path, config: PipelineConf
         "wall_seconds": time.perf_counter() - start,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
     }
-    write_json_atomic(cell_dir / "cell.json", cell)
+    write_json(cell_dir / "cell.json", cell)
     return cell
 
 
@@ -115,7 +108,7 @@ def main(argv: list[str] | None = None) -> None:
             run_cell(args.sequence, args.frontend, args.out, config, lambda label: _progress_callbacks(bar, label))
     except Exception as error:  # a cell that cannot run (no GT for an ablation, ...) is a table entry
         args.out.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(args.out / "cell.json", {
+        write_json(args.out / "cell.json", {
             "sequence": str(args.sequence), "frontend": args.frontend, "rows": {},
             "error": str(error).splitlines()[0] if str(error) else type(error).__name__,
         })
