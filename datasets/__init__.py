@@ -125,8 +125,9 @@ def open_dataset(path: str | Path, config: DatasetConfig | None = None, **option
     """
     from flowslam.config.pipeline import validated
 
-    base = (config or DatasetConfig()).model_dump()
-    c = validated(DatasetConfig, {**base, **options}, None) if options else (config or DatasetConfig())
+    c = config or DatasetConfig()
+    if options:
+        c = validated(DatasetConfig, {**c.model_dump(), **options}, None)
     path = Path(path)
     if not path.exists():
         raise InputError(path, "does not exist")

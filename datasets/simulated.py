@@ -28,7 +28,7 @@ is the KITTI reader with the simulator's conventions:
 from __future__ import annotations
 
 import json
-from functools import cached_property
+from functools import cached_property, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -41,8 +41,9 @@ _SIM_TO_AV2 = {"car": "REGULAR_VEHICLE", "truck": "TRUCK", "cyclist": "BICYCLIST
 _SIM_GROUND = ("road", "sidewalk", "terrain")
 
 
-def simulated_to_av2(classes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(Argoverse 2 category index per point, is_ground) for simulator class ids."""
+@lru_cache(maxsize=1)
+def _av2_lookup() -> tuple[np.ndarray, np.ndarray]:
+    """Simulator class id -> (Argoverse 2 category index, is_ground), built once."""
     from flowslam.sceneflow.metrics import AV2_CATEGORIES
     from flowslam.simulation.labels import CLASS_NAMES
 
@@ -52,6 +53,12 @@ def simulated_to_av2(classes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if name in _SIM_TO_AV2:
             lut[cid] = AV2_CATEGORIES.index(_SIM_TO_AV2[name])
         ground[cid] = name in _SIM_GROUND
+    return lut, ground
+
+
+def simulated_to_av2(classes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Argoverse 2 category index per point, is_ground) for simulator class ids."""
+    lut, ground = _av2_lookup()
     c = np.asarray(classes, dtype=np.int64)
     return lut[c], ground[c]
 

@@ -93,7 +93,6 @@ class NetworkStage:
         from flowslam.sceneflow.network.weights import build_model, load_weights, shipped_weights
 
         self.options = c = config.network
-        self.dynamic_threshold = c.dynamic_threshold
         if c.num_threads:
             torch.set_num_threads(c.num_threads)
         payload = load_weights(c.weights or shipped_weights(), require_hash=c.weights is None)
@@ -131,7 +130,7 @@ class NetworkStage:
         compensated = geometry.transform_points(sample.T_new_src, prev.points)
         state.flow = full_flow(prev.points, compensated, values[:, :3])
         state.dynamic_prob = 1.0 / (1.0 + np.exp(-values[:, 3]))
-        state.static = state.dynamic_prob < self.dynamic_threshold
+        state.static = state.dynamic_prob < self.options.dynamic_threshold
 
 
 class PoseStartStage:
