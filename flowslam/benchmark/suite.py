@@ -18,6 +18,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from flowslam.config import VARIANTS as LOOP_CLOSURE_BY_VARIANT
+
 SUITE_FRAMES = 300
 """Frames of the simulated ``dh`` and ``dt`` sequences."""
 
@@ -29,7 +31,8 @@ DEFAULT_SUITE: dict[str, dict] = {
 """Name -> arguments of ``simulate()`` (None: the demo sequence)."""
 
 DEFAULT_FRONTENDS = ("kiss-icp", "ransac", "sf", "ssf", "gt-seg", "gt-flow+ssf-seg", "gt-flow", "gt")
-VARIANTS = ("a-loam", "s-loam")
+VARIANTS = tuple(LOOP_CLOSURE_BY_VARIANT)
+"""The bench's variants, in table order: ``a-loam`` (loop closure off), ``s-loam`` (on)."""
 
 
 @dataclass(frozen=True)

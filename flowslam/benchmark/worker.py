@@ -25,13 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
-from flowslam.config import PipelineConfig, load_config
+from flowslam.config import VARIANTS, PipelineConfig, load_config
 from flowslam.results import write_json
 
 
 def _variant_config(config: PipelineConfig, frontend: str, variant: str) -> PipelineConfig:
     cfg = config.model_copy(deep=True, update={"frontend": frontend, "backend": "isam2"})
-    cfg.loop_closure.enabled = variant == "s-loam"
+    cfg.loop_closure.enabled = VARIANTS[variant]
     cfg.output.static_map = False  # the bench compares trajectories; a map per cell costs time
     cfg.output.plot = False
     return cfg
