@@ -411,7 +411,7 @@ def train_command(
     export: Optional[Path] = typer.Option(None, "--export", help="Write the best checkpoint as a weights file."),
     no_progress: bool = typer.Option(False, "--no-progress"),
 ):
-    """Train the scene-flow network (multi-GPU/CPU: torchrun -m flowslam.sceneflow.network.train CONFIG.json)."""
+    """Train the scene-flow network (multi-GPU/CPU: torchrun -m flowslam.sceneflow.network.train CONFIG.yaml)."""
     with _user_errors():
         from flowslam.config import load_training_config
         from flowslam.errors import InputError
