@@ -118,30 +118,49 @@ def run(
     no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
 ):
     """Estimate the trajectory of SEQUENCE and write it (TUM, KITTI), metrics and a plot."""
-    with _user_errors():
+    from flowslam.signals import terminate_as_interrupt
+
+    with _user_errors(), _stopped_by_signal(), terminate_as_interrupt():
         from flowslam.config import load_config
 
+        overrides = {
+            "ssf.network.weights": weights and str(weights),
+            "dataset.format": fmt, "dataset.topic": topic, "dataset.gt_topic": gt_topic,
+            "dataset.sequence": sequence_id, "dataset.poses": poses and str(poses),
+            "dataset.kitti_vertical_correction_deg": kitti_correction,
+            "dataset.first_frame": first, "dataset.max_frames": max_frames,
+        }
         cfg = load_config(
-            config,
-            frontend=frontend, backend=backend, output_dir=output_dir and str(output_dir), variant=variant,
-            **{
-                "ssf.network.weights": weights and str(weights),
-                "dataset.format": fmt, "dataset.topic": topic, "dataset.gt_topic": gt_topic,
-                "dataset.sequence": sequence_id, "dataset.poses": poses and str(poses),
-                "dataset.kitti_vertical_correction_deg": kitti_correction,
-                "dataset.first_frame": first, "dataset.max_frames": max_frames,
-            },
+            config, frontend=frontend, backend=backend, output_dir=output_dir and str(output_dir), variant=variant,
+            **overrides,
         )
+        requested = [key for key, value in overrides.items() if value is not None]
+        if variant is not None:
+            requested.append("loop_closure.enabled")
         from flowslam.run import run_sequence
 
         if no_progress:
-            outcome = run_sequence(sequence, cfg)
+            outcome = run_sequence(sequence, cfg, requested=requested)
         else:
             with _progress() as bar:
                 on_start, on_frame = _progress_callbacks(bar, cfg.frontend)
-                outcome = run_sequence(sequence, cfg, on_start=on_start, on_frame=on_frame)
+                outcome = run_sequence(sequence, cfg, on_start=on_start, on_frame=on_frame, requested=requested)
         _report_run(outcome)
         outcome.raise_for_error()
+
+
+@contextmanager
+def _stopped_by_signal():
+    """Ctrl-C or SIGTERM (after the run folder is written): one line, exit 128 + signal."""
+    from flowslam.signals import describe_stop, exit_code
+
+    try:
+        yield
+    except KeyboardInterrupt as stop:
+        if _state["debug"]:
+            raise
+        print(f"flowslam: {describe_stop(stop)}", file=sys.stderr)
+        raise typer.Exit(code=exit_code(stop)) from None
 
 
 def _report_run(outcome) -> None:
@@ -158,10 +177,9 @@ def _report_run(outcome) -> None:
         f"results in [bold]{outcome.run_dir}[/bold]"
     )
     if result.error is not None:
-        console.print(
-            f"[yellow]stopped at frame {result.failed_index}; the trajectory of the "
-            f"{len(result.indices)} frames before it is written.[/yellow]"
-        )
+        kept = (f"the trajectory of the {len(result.indices)} frames before it is written" if result.indices
+                else "no frame was processed, so there is no trajectory (run.json says why)")
+        console.print(f"[yellow]stopped at frame {result.failed_index}; {kept}.[/yellow]")
 
 
 @app.command("eval")
@@ -267,7 +285,7 @@ def demo_command(
 
         from flowslam.config import load_config
         from flowslam.demo import DEMO_FRONTENDS, demo_failures, demo_table, run_demo
-        from flowslam.results import create_results_dir
+        from flowslam.results import create_results_dir, link_latest
         from flowslam.simulation import ensure_demo_sequence
 
         if not _state["debug"]:  # per-loop and per-run INFO lines would bury the table
@@ -275,6 +293,7 @@ def demo_command(
         t0 = time.perf_counter()
         sequence = ensure_demo_sequence(cache_dir, refresh=refresh)
         demo_dir = create_results_dir(output_dir, "demo")
+        link_latest(demo_dir)
         cfg = load_config(output_dir=str(demo_dir))
         chosen = frontends or list(DEMO_FRONTENDS)
         if no_progress:
@@ -311,7 +330,7 @@ def bench_command(
         from flowslam.config import load_config
         from flowslam.errors import InputError
         from flowslam.registry import frontend_names
-        from flowslam.results import create_results_dir
+        from flowslam.results import create_results_dir, link_latest
 
         t0 = time.perf_counter()
         if resume is not None:
@@ -333,6 +352,7 @@ def bench_command(
                 raise InputError(None, "no sequences: drop --no-default-suite or add --sequence PATH")
             bench_dir = create_results_dir(output_dir, "bench")
             start_bench(bench_dir, runs, chosen, cfg, jobs or 1)
+            link_latest(bench_dir)
         typer.echo(f"bench folder: {bench_dir} (resume with `flowslam bench --resume {bench_dir}`)")
         try:
             run_bench(bench_dir, progress=not no_progress, jobs=jobs, say=typer.echo)

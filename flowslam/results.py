@@ -20,37 +20,89 @@ the trajectory of the frames it processed):
 
 from __future__ import annotations
 
+import contextlib
+import itertools
 import json
 import os
 import re
 from datetime import datetime
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from flowslam import geometry
 from flowslam.config import PipelineConfig, dump_config
+from flowslam.errors import InputError
 from flowslam.pipeline import RunResult
 from flowslam.trajectory import Trajectory, write_kitti, write_tum
 
 
 def create_results_dir(output_dir: str | Path, tag: str) -> Path:
-    """Make a new timestamped run folder under ``output_dir`` and point ``latest`` at it."""
+    """Make a new timestamped run folder ``<date>_<time>_<tag>[_N]`` under ``output_dir``.
+
+    Race-free: two processes starting at the same second get different folders (each
+    ``mkdir`` either creates its name or moves on to the next). ``latest`` is left
+    alone: :func:`link_latest` moves it once the folder holds a finished run. A folder
+    that cannot be made (a file in the way, no permission) is an ``InputError``."""
     output_dir = Path(output_dir)
-    output_dir.mkdir(parents=True, exist_ok=True)
     safe_tag = re.sub(r"[^A-Za-z0-9._-]+", "-", tag).strip("-")
     stem = f"{datetime.now():%Y-%m-%d_%H-%M-%S}_{safe_tag}"
-    run_dir, n = output_dir / stem, 1
-    while run_dir.exists():
-        n += 1
-        run_dir = output_dir / f"{stem}_{n}"
-    run_dir.mkdir()
-    link, tmp = output_dir / "latest", output_dir / f".latest-{os.getpid()}"
-    if tmp.is_symlink() or tmp.exists():
-        tmp.unlink()
-    tmp.symlink_to(run_dir.name, target_is_directory=True)
-    os.replace(tmp, link)
-    return run_dir
+    try:
+        if output_dir.exists() and not output_dir.is_dir():
+            raise InputError(output_dir, "output folder is a file, not a folder")
+        output_dir.mkdir(parents=True, exist_ok=True)
+        for n in itertools.count(1):
+            run_dir = output_dir / (stem if n == 1 else f"{stem}_{n}")
+            try:
+                run_dir.mkdir()
+                return run_dir
+            except FileExistsError:
+                continue
+    except OSError as e:
+        raise InputError(e.filename or output_dir, f"cannot create the results folder ({_reason(e)})") from None
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+def link_latest(run_dir: Path) -> None:
+    """Point ``<output_dir>/latest`` at ``run_dir`` (atomically: a new link renamed over
+    the old one). Called only once ``run_dir`` holds its ``run.json``."""
+    run_dir = Path(run_dir)
+    link, tmp = run_dir.parent / "latest", run_dir.parent / f".latest-{os.getpid()}"
+    try:
+        if tmp.is_symlink() or tmp.exists():
+            tmp.unlink()
+        tmp.symlink_to(run_dir.name, target_is_directory=True)
+        os.replace(tmp, link)
+    except OSError as e:
+        raise InputError(link, f"cannot update the 'latest' link ({_reason(e)})") from None
+
+
+def _reason(error: OSError) -> str:
+    return error.strerror or str(error)
+
+
+def write_atomic(path: str | Path, write: Callable[[Path], object]) -> Path:
+    """Call ``write(tmp)`` on a temporary name beside ``path`` (same suffix, so writers
+    that pick the format from it still work), then rename it to ``path``: a reader, or
+    a run stopped half-way, never sees half a file. ``OSError`` (no space, no
+    permission, a file where a folder should be) becomes an ``InputError`` naming
+    ``path``; whatever was already written elsewhere stays."""
+    path = Path(path)
+    tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except OSError as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise InputError(path, f"cannot write ({_reason(e)})") from None
+    return path
+
+
+def write_text(path: str | Path, text: str) -> Path:
+    """``text`` into ``path`` through :func:`write_atomic`."""
+    return write_atomic(path, lambda tmp: tmp.write_text(text))
 
 
 def _json_default(value):
@@ -63,16 +115,12 @@ def _json_default(value):
     raise TypeError(f"not JSON serialisable: {type(value)}")
 
 
-def write_json(path: Path, data: dict) -> None:
-    """``data`` as JSON (numpy values and paths converted), written to a temporary name
-    beside ``path`` and renamed, so a reader never sees half a file."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(data, indent=2, default=_json_default, allow_nan=True) + "\n")
-    os.replace(tmp, path)
+def write_json(path: str | Path, data: dict) -> Path:
+    """``data`` as JSON (numpy values and paths converted), through :func:`write_atomic`."""
+    return write_text(path, json.dumps(data, indent=2, default=_json_default, allow_nan=True) + "\n")
 
 
-def write_loops_csv(path: Path, loops) -> None:
+def write_loops_csv(path: Path, loops) -> Path:
     """One row per accepted loop: frames i and j, fitness, inlier RMSE (m), and the size of
     the correction it asked for (translation m, rotation deg) from ``info`` where present."""
     rows = ["i,j,fitness,inlier_rmse_m,descriptor_distance,correction_m,correction_deg"]
@@ -81,7 +129,7 @@ def write_loops_csv(path: Path, loops) -> None:
             f"{lc.i},{lc.j},{lc.fitness:.4f},{lc.inlier_rmse:.4f},{lc.descriptor_distance:.4f},"
             f"{lc.info.get('correction_m', float('nan')):.4f},{lc.info.get('correction_deg', float('nan')):.4f}"
         )
-    path.write_text("\n".join(rows) + "\n")
+    return write_text(path, "\n".join(rows) + "\n")
 
 
 def write_results(
@@ -90,44 +138,42 @@ def write_results(
     config: PipelineConfig,
     gt: Trajectory | None,
     metrics: dict | None,
-    run_info: dict,
 ) -> list[Path]:
-    """Write every output of a run (see module doc); returns the files written. The top
-    view is drawn when ``config.output.plot``."""
+    """Write the outputs of a run (see module doc) except ``run.json``, which the caller
+    writes last so that it never claims more than is on disk; returns the files
+    written. Trajectories first (the most valuable), the top view (when
+    ``config.output.plot``) last. Every file goes through :func:`write_atomic`."""
     written: list[Path] = []
 
-    def out(name: str) -> Path:
-        path = run_dir / name
-        written.append(path)
-        return path
+    def out(name: str, write: Callable[[Path], object]) -> None:
+        written.append(write_atomic(run_dir / name, write))
 
-    out("config.yaml").write_text(dump_config(config))
+    out("config.yaml", lambda tmp: tmp.write_text(dump_config(config)))
     if len(result.indices):
         est = result.trajectory
-        write_tum(out("trajectory_tum.txt"), est)
-        write_kitti(out("trajectory_kitti.txt"), est)
         odo = Trajectory(geometry.compose_relatives(result.odometry), est.timestamps)
-        write_tum(out("odometry_tum.txt"), odo)
+        out("trajectory_tum.txt", lambda tmp: write_tum(tmp, est))
+        out("trajectory_kitti.txt", lambda tmp: write_kitti(tmp, est))
+        out("odometry_tum.txt", lambda tmp: write_tum(tmp, odo))
         if gt is not None:
-            write_tum(out("gt_tum.txt"), gt)
-            write_kitti(out("gt_kitti.txt"), gt)
-        position = {index: k for k, index in enumerate(result.indices)}
-        loops = [(position[lc.i], position[lc.j]) for lc in result.loops
-                 if lc.i in position and lc.j in position]
+            out("gt_tum.txt", lambda tmp: write_tum(tmp, gt))
+            out("gt_kitti.txt", lambda tmp: write_kitti(tmp, gt))
         if result.loops:
-            write_loops_csv(out("loops.csv"), result.loops)
-        if config.output.plot and len(est) > 1:
-            from flowslam.plotting import plot_top_view
-
-            plot_top_view(
-                out("trajectory_topview.png"),
-                est.poses,
-                None if gt is None else gt.poses,
-                title=f"{config.frontend} + {config.backend}",
-                loops=loops,
-                odometry=odo.poses,
-            )
+            written.append(write_loops_csv(run_dir / "loops.csv", result.loops))
     if metrics is not None:
-        write_json(out("metrics.json"), metrics)
-    write_json(out("run.json"), run_info)
+        written.append(write_json(run_dir / "metrics.json", metrics))
+    if config.output.plot and len(result.indices) > 1:
+        written.append(_write_top_view(run_dir / "trajectory_topview.png", result, config, gt))
     return written
+
+
+def _write_top_view(path: Path, result: RunResult, config: PipelineConfig, gt: Trajectory | None) -> Path:
+    from flowslam.plotting import plot_top_view
+
+    position = {index: k for k, index in enumerate(result.indices)}
+    loops = [(position[lc.i], position[lc.j]) for lc in result.loops if lc.i in position and lc.j in position]
+    odometry = geometry.compose_relatives(result.odometry)
+    return write_atomic(path, lambda tmp: plot_top_view(
+        tmp, result.poses, None if gt is None else gt.poses,
+        title=f"{config.frontend} + {config.backend}", loops=loops, odometry=odometry,
+    ))

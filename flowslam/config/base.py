@@ -11,7 +11,8 @@ from pydantic import BaseModel, ConfigDict
 
 
 class StrictModel(BaseModel):
-    """A configuration section: unknown keys are errors; the docstring written under a
-    field becomes its description (shown by ``flowslam config``)."""
+    """A configuration section: unknown keys are errors; NaN and infinity are refused in
+    every float field; the docstring written under a field becomes its description
+    (shown by ``flowslam config``)."""
 
-    model_config = ConfigDict(extra="forbid", use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", use_attribute_docstrings=True, allow_inf_nan=False)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from flowslam.config.base import StrictModel
 
@@ -19,20 +19,26 @@ KernelName = Literal["huber", "cauchy", "geman_mcclure", "l2"]
 class KissIcpConfig(StrictModel):
     """Options of the ``kiss-icp`` frontend (passed to the kiss-icp package)."""
 
-    max_range: float = 100.0
-    """Points farther than this from the sensor are dropped (m)."""
-    min_range: float = 0.0
+    max_range: float = Field(100.0, gt=0)
+    """Points farther than this from the sensor are dropped (m); above ``min_range``."""
+    min_range: float = Field(0.0, ge=0)
     """Points nearer than this are dropped (m)."""
     deskew: bool = True
     """Correct the motion during the sweep (needs per-point times)."""
-    voxel_size: float | None = None
+    voxel_size: float | None = Field(None, gt=0)
     """Map voxel size (m); None: max_range / 100, as kiss-icp does."""
-    max_points_per_voxel: int = 20
+    max_points_per_voxel: int = Field(20, ge=1)
     """Points kept per map voxel."""
-    rotation_std_deg: float = 0.1
+    rotation_std_deg: float = Field(0.1, gt=0)
     """kiss-icp reports no covariance: the odometry measurement gets this fixed 1-sigma (deg)."""
-    translation_std_m: float = 0.05
+    translation_std_m: float = Field(0.05, gt=0)
     """... and this fixed 1-sigma translation (m) per axis."""
+
+    @model_validator(mode="after")
+    def _range_interval(self):
+        if self.min_range >= self.max_range:
+            raise ValueError(f"min_range ({self.min_range} m) must be below max_range ({self.max_range} m)")
+        return self
 
 
 class FlowOdometryConfig(StrictModel):

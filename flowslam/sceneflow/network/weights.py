@@ -65,6 +65,8 @@ def load_weights(path: str | Path, *, require_hash: bool = True) -> dict:
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "weights file does not exist")
+    if path.stat().st_size == 0:
+        raise InputError(path, "weights file is empty")
     sidecar = _sidecar(path)
     if sidecar.is_file():
         expected = sidecar.read_text().split()[0] if sidecar.read_text().split() else ""
@@ -77,7 +79,8 @@ def load_weights(path: str | Path, *, require_hash: bool = True) -> dict:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - any unpickling failure is bad input
-        raise InputError(path, f"cannot load weights ({e.__class__.__name__}: {str(e).splitlines()[0]})") from None
+        first_line = (str(e).splitlines() or ["no message"])[0]
+        raise InputError(path, f"cannot load weights ({e.__class__.__name__}: {first_line})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise InputError(path, f"not a {FORMAT} weights file")
     return payload

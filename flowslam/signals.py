@@ -1,0 +1,91 @@
+"""Signals that stop a run: SIGTERM handled like Ctrl-C, and both held back while
+results are written.
+
+A job scheduler, ``timeout`` or ``docker stop`` sends SIGTERM, whose default action
+kills the process before anything is written. Inside :func:`terminate_as_interrupt`
+SIGTERM raises :class:`Terminated` instead, a ``KeyboardInterrupt``, so every path
+that keeps the work done on Ctrl-C (``run_pipeline`` stores it in
+``RunResult.error``) keeps it on SIGTERM too. Inside :func:`deferred_signals` (the
+writing of a run folder) SIGINT and SIGTERM are recorded and raised only when the
+block ends, so a run folder is never half written because of a signal.
+
+Both are no-ops outside the main thread (Python delivers signals to it only).
+``flowslam run`` turns SIGTERM into ``Terminated`` for the whole command; library
+callers keep their own handlers (``run_sequence`` only defers signals while writing).
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from contextlib import contextmanager
+from typing import Iterator
+
+__all__ = ["Terminated", "terminate_as_interrupt", "deferred_signals", "describe_stop", "exit_code"]
+
+
+class Terminated(KeyboardInterrupt):
+    """The process was asked to stop by a signal other than SIGINT (e.g. SIGTERM)."""
+
+    def __init__(self, signum: int):
+        self.signum = signum
+        super().__init__(f"stopped by {signal.Signals(signum).name}")
+
+
+def _in_main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+def _raise_for(signum: int, _frame=None):
+    if signum == signal.SIGINT:
+        raise KeyboardInterrupt
+    raise Terminated(signum)
+
+
+@contextmanager
+def terminate_as_interrupt() -> Iterator[None]:
+    """SIGTERM raises :class:`Terminated` (a ``KeyboardInterrupt``) inside the block."""
+    if not _in_main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_for)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+@contextmanager
+def deferred_signals() -> Iterator[None]:
+    """SIGINT and SIGTERM that arrive inside the block are held; when it ends, the
+    handlers in place before it are restored and the first held signal is sent again,
+    so whatever would have handled it then (Python's ``KeyboardInterrupt``,
+    :func:`terminate_as_interrupt`, a caller's own handler, or the default action)
+    handles it now."""
+    if not _in_main_thread():
+        yield
+        return
+    pending: list[int] = []
+    wanted = (signal.SIGINT, signal.SIGTERM)
+    previous = {s: signal.signal(s, lambda signum, _frame: pending.append(signum)) for s in wanted}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    if pending:
+        signal.raise_signal(pending[0])
+
+
+def describe_stop(error: BaseException) -> str:
+    """One line for ``run.json`` and the terminal: why a run stopped."""
+    if isinstance(error, Terminated):
+        return str(error)
+    if isinstance(error, KeyboardInterrupt):
+        return "interrupted (SIGINT, Ctrl-C)"
+    return str(error) or error.__class__.__name__
+
+
+def exit_code(error: KeyboardInterrupt) -> int:
+    """The shell's convention for a process stopped by a signal: 128 + its number."""
+    return 128 + (error.signum if isinstance(error, Terminated) else signal.SIGINT)
