@@ -53,14 +53,18 @@ def _main(
 
 @contextmanager
 def _user_errors():
-    """Turn ``InputError`` into one line on stderr and exit code 2 (unless --debug)."""
+    """Turn ``InputError`` into one line on stderr and exit code 2 (unless --debug). So
+    too an ``OSError`` that names a file (a folder that cannot be made, no permission,
+    no space left): a problem of the machine or of the paths given, not of flowslam."""
     from flowslam.errors import InputError
 
     try:
         yield
-    except InputError as error:
-        if _state["debug"]:
+    except (InputError, OSError) as error:
+        if _state["debug"] or (isinstance(error, OSError) and not error.filename):
             raise
+        if isinstance(error, OSError):
+            error = InputError(error.filename, error.strerror or str(error))
         print(f"flowslam: error: {error}", file=sys.stderr)
         raise typer.Exit(code=2) from None
 

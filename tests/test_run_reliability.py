@@ -247,3 +247,11 @@ def test_signals_held_while_writing_are_delivered_after():
     assert reached
     assert signal.getsignal(signal.SIGTERM) == before
     assert signal.getsignal(signal.SIGINT) == signal.default_int_handler
+
+
+def test_simulate_into_an_impossible_folder(tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("x\n")
+    proc = flowslam("simulate", blocker / "seq", "-n", "2", "--no-progress")
+    assert_one_line_error(proc, str(blocker / "seq"), "Not a directory")
+    assert_one_line_error(flowslam("simulate", blocker, "-n", "2", "--no-progress"), str(blocker), "not a folder")
