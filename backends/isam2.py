@@ -70,6 +70,18 @@ Library use
     backend.latest_pose(), backend.trajectory()      # current estimates
     backend.loops, backend.events, backend.stats     # what happened
     backend.odometry_trajectory(), backend.online_trajectory()
+    backend.write_g2o("graph.g2o")                   # the graph, for gtsam.readG2o / g2o
+
+Graph export
+------------
+``write_g2o(path)`` (``exports_graph``: the run writes ``graph.g2o`` for backends that
+have it) writes every accepted factor and, as vertices, ``trajectory()`` (the run's
+final poses) with :mod:`flowslam.graph_export`: edges with the inner Gaussian model of
+their robust kernel, a ``# FLOWSLAM_EDGE loop cauchy K`` / ``odometry huber K`` comment
+before each, the priors as ``# FLOWSLAM_PRIOR`` comments and ``FIX`` on the first scan.
+``gtsam.readG2o(path, True)`` plus a prior on the first vertex re-optimises to the run's
+trajectory (exactly without loops; with loops up to the Cauchy down-weighting, see
+``tests/test_graph_export.py``); ``flowslam.graph_export.read_g2o`` restores the kernels.
 """
 
 from __future__ import annotations
@@ -78,11 +90,12 @@ import logging
 import re
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import gtsam
 import numpy as np
 
-from flowslam import geometry
+from flowslam import geometry, graph_export
 from flowslam.config.isam2 import Isam2Config
 
 log = logging.getLogger(__name__)
@@ -160,6 +173,8 @@ class Isam2Backend:
     name = "isam2"
     accepts_loops = True
     """The run builds a loop closer for this backend when ``loop_closure.enabled``."""
+    exports_graph = True
+    """The run writes ``graph.g2o`` with :meth:`write_g2o`."""
 
     def __init__(self, config: Isam2Config | None = None):
         self.config = config or Isam2Config()
@@ -347,6 +362,13 @@ class Isam2Backend:
             log.warning("iSAM2 estimate failed (%s); returning the linearisation point", _first_line(error))
             values = self._isam.getLinearizationPoint()
         return self._poses(values)
+
+    def write_g2o(self, path) -> Path:
+        """Write the factor graph and ``trajectory()`` as g2o (module doc, "Graph export");
+        vertex ids are the dataset frame indices. Returns ``path``."""
+        edges, priors = graph_export.pose_graph(self._graph, {(r.i, r.j) for r in self.loops})
+        poses = dict(zip(self._indices, self.trajectory()))
+        return graph_export.write_g2o(path, poses, edges, priors)
 
     def odometry_trajectory(self) -> np.ndarray:
         """(K,4,4) the odometry measurements chained from the identity (no optimisation)."""

@@ -18,6 +18,8 @@ class OdometryBackend:
     name = "odometry"
     accepts_loops = False
     """No graph: the run builds no loop closer for this backend."""
+    exports_graph = False
+    """No factor graph to write (``graph.g2o`` is for graph backends)."""
 
     def __init__(self):
         self._poses: list[np.ndarray] = []

@@ -7,7 +7,7 @@ a folder with ``sensors/lidar/`` -> ``argoverse2``; any other folder -> ``folder
 (a folder of scan files). ``format=`` (``dataset.format`` in the run config)
 overrides the guess.
 
-The reader modules (and their heavy dependencies rosbags / pyarrow / open3d) are
+The reader modules (and their heavy dependencies rosbags / pyarrow) are
 imported only when a dataset of that format is opened.
 """
 
@@ -70,11 +70,11 @@ def _is_simulated(path: Path) -> bool:
 
 
 _BUILTIN = [
-    _Format("rosbag", _lazy("rosbag", "RosBag"), _is_rosbag, ("topic", "gt_topic")),
-    _Format("simulated", _lazy("simulated", "SimulatedSequence"), _is_simulated, ("sequence",)),
-    _Format("kitti", _lazy("kitti", "KittiOdometry"), _is_kitti, ("sequence", "vertical_correction_deg")),
-    _Format("argoverse2", _lazy("argoverse2", "Argoverse2Log"), _is_argoverse2, ()),
-    _Format("folder", _lazy("folder", "ScanFolder"), Path.is_dir, ("poses",)),
+    _Format("rosbag", _lazy("rosbag", "RosBag"), _is_rosbag, ("topic", "gt_topic", "fix_times")),
+    _Format("simulated", _lazy("simulated", "SimulatedSequence"), _is_simulated, ("sequence", "fix_times")),
+    _Format("kitti", _lazy("kitti", "KittiOdometry"), _is_kitti, ("sequence", "vertical_correction_deg", "fix_times")),
+    _Format("argoverse2", _lazy("argoverse2", "Argoverse2Log"), _is_argoverse2, ("fix_times",)),
+    _Format("folder", _lazy("folder", "ScanFolder"), Path.is_dir, ("poses", "fix_times")),
 ]
 _USER: list[_Format] = []
 
@@ -87,8 +87,9 @@ def register_format(
     ``detect_fn(path) -> bool`` makes ``open_dataset`` pick it automatically; user
     formats are tried before the built-in ones (latest registration first). Without
     it the format is used only with ``format=name``. The reader receives the options
-    (``topic``, ``gt_topic``, ``sequence``, ``poses``, ``vertical_correction_deg``)
-    that were not None.
+    (``topic``, ``gt_topic``, ``sequence``, ``poses``, ``vertical_correction_deg``,
+    ``fix_times``) that were set (not None, not False). If it derives from ``Dataset``
+    its frames are sanitised with ``dataset.max_coordinate_m``.
     Registering an existing name replaces that entry.
     """
     _USER[:] = [f for f in _USER if f.name != name]
@@ -107,7 +108,7 @@ def available_formats() -> list[str]:
 
 _READER_OPTIONS = {
     "topic": "topic", "gt_topic": "gt_topic", "sequence": "sequence", "poses": "poses",
-    "kitti_vertical_correction_deg": "vertical_correction_deg",
+    "kitti_vertical_correction_deg": "vertical_correction_deg", "fix_times": "fix_times",
 }
 """``DatasetConfig`` field -> keyword of the reader classes."""
 
@@ -117,9 +118,12 @@ def open_dataset(path: str | Path, config: DatasetConfig | None = None, **option
 
     ``config`` is a ``DatasetConfig`` (defaults if None); ``options`` replace its fields
     by name (``format``, ``sequence``, ``topic``, ``gt_topic``, ``poses``,
-    ``kitti_vertical_correction_deg``). The format is guessed from ``path`` unless
-    ``format`` is set (module doc). Raises ``InputError`` for a missing path, an unknown
-    format, an undetectable format, or an option that the chosen reader does not take.
+    ``kitti_vertical_correction_deg``, ``fix_times``, ``max_coordinate_m``). The format
+    is guessed from ``path`` unless ``format`` is set (module doc). Raises ``InputError``
+    for a missing path, an unknown format, an undetectable format, or an option that the
+    chosen reader does not take; readers raise it for bad files and for timestamps that
+    do not increase strictly (unless ``fix_times``). Frames are sanitised with
+    ``max_coordinate_m`` (``flowslam.frame.sanitize_frame``).
     The frame range (``first_frame``, ``max_frames``) is not the reader's: see
     :func:`frame_range`.
     """
@@ -143,8 +147,8 @@ def open_dataset(path: str | Path, config: DatasetConfig | None = None, **option
             raise InputError(
                 path, f"cannot tell the dataset format; set dataset.format (one of {', '.join(f.name for f in formats)})"
             )
-    given = {
-        kw: getattr(c, field) for field, kw in _READER_OPTIONS.items() if getattr(c, field) is not None
+    given = {  # identity tests: 0 (e.g. no elevation correction) is an option that is set
+        kw: v for field, kw in _READER_OPTIONS.items() if (v := getattr(c, field)) is not None and v is not False
     }
     if chosen.options is not None:
         unused = sorted(field for field, kw in _READER_OPTIONS.items() if kw in given and kw not in chosen.options)
@@ -153,7 +157,9 @@ def open_dataset(path: str | Path, config: DatasetConfig | None = None, **option
                 path, f"option(s) {', '.join(unused)} do not apply to the {chosen.name} format"
                 + ("" if fmt else " (detected; set dataset.format to choose another)"),
             )
-    return chosen.opener(path, **given)
+    dataset = chosen.opener(path, **given)
+    dataset.max_coordinate_m = c.max_coordinate_m
+    return dataset
 
 
 def frame_range(n: int, config: DatasetConfig | None = None) -> range:

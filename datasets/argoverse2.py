@@ -7,7 +7,8 @@ slerp/linear to the sweep timestamp when there is no exact match). The LiDARs'
 own extrinsics ``T_egovehicle_sensor`` (``calibration/egovehicle_SE3_sensor.feather``)
 are kept in ``Argoverse2Log.egovehicle_SE3_sensor`` and ``Frame.extras``.
 
-Units: metres; ``timestamp`` = sweep ``timestamp_ns`` * 1e-9 (seconds, epoch);
+Units: metres; ``timestamp`` = sweep ``timestamp_ns`` * 1e-9 (seconds, epoch; strictly
+increasing, else ``InputError`` or with ``fix_times`` a logged repair);
 ``point_times`` = ``offset_ns`` * 1e-9, seconds relative to the sweep timestamp.
 
 Scene-flow labels (``flow_tx_m flow_ty_m flow_tz_m classes dynamic is_ground_0``):
@@ -31,6 +32,7 @@ from flowslam import geometry
 from flowslam.frame import Dataset, Frame
 from flowslam.datasets.pose_interpolation import ScanPoses, poses_at_scans
 from flowslam.errors import InputError
+from flowslam.trajectory import checked_timestamps, unit_quaternions
 
 log = logging.getLogger(__name__)
 
@@ -38,19 +40,7 @@ LIDAR_COLUMNS = ("x", "y", "z", "intensity", "offset_ns")
 POSE_COLUMNS = ("qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")
 FLOW_COLUMNS = ("flow_tx_m", "flow_ty_m", "flow_tz_m", "classes", "dynamic", "is_ground_0")
 POINT_EXTRAS = ("laser_number", "is_ground", "av2_category")
-"""Per-point arrays this reader keeps in ``Frame.extras``."""
-
-
-def _mask_point_extras(frame: Frame) -> None:
-    """Drop non-finite points from the per-point extras, as ``sanitize_frame`` will from the rest.
-
-    (``sanitize_frame`` filters only the ``Frame`` per-point fields, not ``extras``.)
-    """
-    ok = np.isfinite(frame.points).all(axis=1)
-    if not ok.all():
-        for key in POINT_EXTRAS:
-            if key in frame.extras:
-                frame.extras[key] = frame.extras[key][ok]
+"""Per-point arrays this reader keeps in ``Frame.extras`` (filtered with the points by ``sanitize_frame``)."""
 
 
 def read_feather_columns(
@@ -73,11 +63,13 @@ def read_feather_columns(
     return {c: table.column(c).to_numpy() for c in wanted}
 
 
-def poses_from_columns(cols: dict[str, np.ndarray]) -> np.ndarray:
-    """(N,4,4) transforms from AV2's ``qw qx qy qz tx_m ty_m tz_m`` columns."""
-    q = np.column_stack([cols["qx"], cols["qy"], cols["qz"], cols["qw"]]).astype(np.float64)
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
+def poses_from_columns(cols: dict[str, np.ndarray], path: Path | str = "") -> np.ndarray:
+    """(N,4,4) transforms from AV2's ``qw qx qy qz tx_m ty_m tz_m`` columns (of the file ``path``);
+    ``InputError`` for a zero or non-finite quaternion or translation."""
+    q = unit_quaternions(np.column_stack([cols["qx"], cols["qy"], cols["qz"], cols["qw"]]), path, "pose table")
     t = np.column_stack([cols["tx_m"], cols["ty_m"], cols["tz_m"]]).astype(np.float64)
+    if not np.isfinite(t).all():
+        raise InputError(path, "pose table has a non-finite translation")
     return geometry.from_quat_xyzw(q, t)
 
 
@@ -86,11 +78,13 @@ class Argoverse2Log(Dataset):
 
     Args:
         path: the log folder holding ``sensors/lidar/``.
+        fix_times: repair sweep times that do not increase strictly (two file names of
+            the same nanosecond) instead of raising.
     """
 
     name = "argoverse2"
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, fix_times: bool = False):
         super().__init__(path)
         if not self.path.exists():
             raise InputError(self.path, "does not exist")
@@ -104,7 +98,10 @@ class Argoverse2Log(Dataset):
         if bad:
             raise InputError(lidar_dir / bad[0], "sweep file name is not a nanosecond timestamp")
         self.scan_files = sorted(files, key=lambda p: int(p.stem))
-        self.timestamps_ns = np.array([int(p.stem) for p in self.scan_files], dtype=np.int64)
+        self.timestamps_ns = checked_timestamps(
+            np.array([int(p.stem) for p in self.scan_files], dtype=np.int64), lidar_dir, fix=fix_times,
+            what="sweep times from the file names (ns)", names=[p.name for p in self.scan_files],
+        )
         self.timestamps = self.timestamps_ns * 1e-9
         self.egovehicle_SE3_sensor = self._read_calibration()
         self.gt: ScanPoses | None = None
@@ -117,7 +114,7 @@ class Argoverse2Log(Dataset):
             log.warning("%s: no calibration file", path)
             return {}
         cols = read_feather_columns(path, ("sensor_name",) + POSE_COLUMNS)
-        return dict(zip((str(s) for s in cols["sensor_name"]), poses_from_columns(cols)))
+        return dict(zip((str(s) for s in cols["sensor_name"]), poses_from_columns(cols, path)))
 
     def _read_poses(self) -> None:
         path = self.path / "city_SE3_egovehicle.feather"
@@ -126,15 +123,15 @@ class Argoverse2Log(Dataset):
             return
         cols = read_feather_columns(path, ("timestamp_ns",) + POSE_COLUMNS)
         stamps = cols["timestamp_ns"].astype(np.int64)
-        self.gt = poses_at_scans(stamps, poses_from_columns(cols), self.timestamps_ns, str(path))
+        self.gt = poses_at_scans(stamps, poses_from_columns(cols, path), self.timestamps_ns, str(path))
         self.gt_poses = self.gt.full
 
     def _find_flow_files(self) -> dict[int, Path]:
         """Sweep index -> flow-label file (see module doc); the last sweep never has one."""
         found: dict[int, Path] = {}
         per_sweep = self.path / "flow_labels"
-        for i, ts in enumerate(self.timestamps_ns[:-1]):
-            p = per_sweep / f"{ts}.feather"
+        for i, sweep in enumerate(self.scan_files[:-1]):
+            p = per_sweep / f"{sweep.stem}.feather"
             if p.is_file():
                 found[i] = p
         single = self.path / "flow_labels.feather"
@@ -166,7 +163,6 @@ class Argoverse2Log(Dataset):
             frame.extras["laser_number"] = cols["laser_number"]
         if index in self.flow_files:
             self._attach_flow(frame, self.flow_files[index])
-        _mask_point_extras(frame)
         return frame
 
     def _attach_flow(self, frame: Frame, path: Path) -> None:

@@ -14,6 +14,10 @@ Timestamps (seconds), first rule that applies:
    that are consecutive integers below 1e6 (``000000``, ``000001``, ...) are
    frame indices, not times, and fall through to rule 4;
 4. 0.1 s per frame (logged).
+
+The times must increase strictly: otherwise ``InputError`` naming the file they come
+from (the poses file, ``times.txt``, or the folder and the two scan files), unless
+``fix_times`` repairs them (``flowslam.trajectory.checked_timestamps``, logged).
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ from flowslam.datasets.scan_files import (
     read_times_file,
 )
 from flowslam.errors import InputError
-from flowslam.trajectory import read_trajectory
+from flowslam.trajectory import checked_timestamps, read_trajectory
 
 log = logging.getLogger(__name__)
 
@@ -69,12 +73,14 @@ class ScanFolder(ScanFileDataset):
     Args:
         path: the folder.
         poses: a KITTI or TUM poses file with one pose per scan (overrides discovery).
+        fix_times: repair timestamps that do not increase strictly instead of raising.
     """
 
     name = "folder"
 
-    def __init__(self, path: str | Path, poses: str | Path | None = None):
+    def __init__(self, path: str | Path, poses: str | Path | None = None, fix_times: bool = False):
         super().__init__(path)
+        self.fix_times = fix_times
         if not self.path.exists():
             raise InputError(self.path, "does not exist")
         if not self.path.is_dir():
@@ -86,7 +92,7 @@ class ScanFolder(ScanFileDataset):
         self.poses_path = Path(poses) if poses is not None else self._discover_poses()
         tum_times = None
         if self.poses_path is not None:
-            traj = read_trajectory(self.poses_path)
+            traj = read_trajectory(self.poses_path, fix_times=fix_times)
             if len(traj) != n:
                 raise InputError(self.poses_path, f"has {len(traj)} poses but the folder has {n} scans")
             self.gt_poses = traj.poses
@@ -101,10 +107,12 @@ class ScanFolder(ScanFileDataset):
             return tum_times
         times_path = self.path / "times.txt"
         if times_path.is_file():
-            return read_times_file(times_path, expected=len(self.scan_files))
+            return read_times_file(times_path, expected=len(self.scan_files), fix=self.fix_times)
         stems = timestamps_from_stems(self.scan_files)
         if stems is not None:
-            return stems
+            names = [p.name for p in self.scan_files]
+            return checked_timestamps(stems, self.path, fix=self.fix_times, what="times from the file names (s)",
+                                      names=names)
         log.warning("%s: no timestamps found, assuming %.1f s between scans", self.path, DEFAULT_SCAN_PERIOD)
         return np.arange(len(self.scan_files)) * DEFAULT_SCAN_PERIOD
 

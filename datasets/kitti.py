@@ -4,7 +4,8 @@ Frames: the *sensor frame* is the Velodyne frame. KITTI's GT poses are given for
 camera 0 (``P_i = T_cam0world_cam0i``); with ``Tr = T_cam0_velo`` from ``calib.txt``
 they become LiDAR poses ``T_world_velo_i = inv(Tr) @ P_i @ Tr``, where the world is
 the Velodyne frame of scan 0 (so pose 0 is ~identity). Units: metres, seconds
-(``times.txt``, relative to the sequence start). KITTI has no per-point time.
+(``times.txt``, relative to the sequence start, strictly increasing: else
+``InputError``, or a logged repair with ``fix_times``). KITTI has no per-point time.
 """
 
 from __future__ import annotations
@@ -111,6 +112,7 @@ class KittiOdometry(ScanFileDataset):
             (default 0.205 deg, KITTI's known HDL-64E intrinsic-calibration error, the
             correction KISS-ICP and IMLS-SLAM apply to KITTI scans); 0 reads the
             points exactly as stored.
+        fix_times: repair ``times.txt`` values that do not increase strictly instead of raising.
     """
 
     name = "kitti"
@@ -120,6 +122,7 @@ class KittiOdometry(ScanFileDataset):
         path: str | Path,
         sequence: str | int | None = None,
         vertical_correction_deg: float = KITTI_VERTICAL_CORRECTION_DEG,
+        fix_times: bool = False,
     ):
         super().__init__(path)
         self.vertical_correction_deg = float(vertical_correction_deg)
@@ -133,7 +136,7 @@ class KittiOdometry(ScanFileDataset):
         n = len(self.scan_files)
         times_path = self.sequence_dir / "times.txt"
         if times_path.exists():
-            self.timestamps = read_times_file(times_path, expected=n)
+            self.timestamps = read_times_file(times_path, expected=n, fix=fix_times)
         else:
             log.warning("%s: no times.txt, assuming %.1f s between scans", self.sequence_dir, DEFAULT_SCAN_PERIOD)
             self.timestamps = np.arange(n) * DEFAULT_SCAN_PERIOD

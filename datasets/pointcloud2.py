@@ -2,7 +2,9 @@
 
 Decoding follows the message's own description only: ``fields`` (name, offset,
 datatype, count), ``point_step``, ``row_step``, ``height``/``width`` and
-``is_bigendian``; no layout is assumed. ``x y z`` are required, the intensity is the
+``is_bigendian``; no layout is assumed. The cloud has ``height`` x ``width`` points;
+``data`` must hold them (no more than ``row_step`` x ``height`` bytes, no fewer than
+the last point needs), else ``InputError``. ``x y z`` are required, the intensity is the
 first of ``INTENSITY_FIELDS`` present, and the per-point time the first of
 ``TIME_FIELDS``. Fields with ``count > 1`` contribute their first element.
 
@@ -84,27 +86,29 @@ def decode_pointcloud2(msg: Any, where: str) -> DecodedCloud:
         offsets.append(int(f.offset))
     n = height * width
     data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
-    if n == 0:
-        empty = np.zeros((0,))
-        return DecodedCloud(np.zeros((0, 3)), empty if inten else None, empty if tname else None)
-    if step <= 0 or (height > 1 and row_step < width * step):
+    if n and (step <= 0 or (height > 1 and row_step < width * step)):
         raise InputError(
             where, f"PointCloud2 point_step {step} / row_step {row_step} inconsistent with width {width}"
         )
-    need = (height - 1) * row_step + width * step
+    need = (height - 1) * row_step + width * step if n else 0
     if data.size < need:
         raise InputError(where, f"PointCloud2 data has {data.size} bytes, {height}x{width} points need {need}")
+    if data.size > height * max(row_step, width * step):  # the message says data = row_step x height
+        raise InputError(where, f"PointCloud2 data has {data.size} bytes, more than row_step {row_step} x height "
+                                f"{height}: width/height/steps do not describe the data")
+    if n == 0:
+        empty = np.zeros((0,))
+        return DecodedCloud(np.zeros((0, 3)), empty if inten else None, empty if tname else None)
     dt = np.dtype({"names": wanted, "formats": formats, "offsets": offsets, "itemsize": step})
     rec = np.ndarray(shape=(height, width), dtype=dt, buffer=data, strides=(row_step, step))
 
     def column(name: str) -> np.ndarray:
         return rec[name].reshape(-1)
 
-    points = np.column_stack([column(k).astype(np.float64) for k in "xyz"])
-    intensity = column(inten).astype(np.float64) if inten else None
-    times = None
-    if tname:
-        times = _relative_times(column(tname), stamp_to_ns(msg.header.stamp))
+    with np.errstate(invalid="ignore"):  # signalling NaNs in the data stay NaN (sanitize_frame drops them)
+        points = np.column_stack([column(k).astype(np.float64) for k in "xyz"])
+        intensity = column(inten).astype(np.float64) if inten else None
+        times = _relative_times(column(tname), stamp_to_ns(msg.header.stamp)) if tname else None
     return DecodedCloud(points, intensity, times)
 
 

@@ -4,7 +4,9 @@ ROS2 bag folders (sqlite3 ``.db3`` or ``.mcap`` storage), through ``rosbags.high
 Frames and units: points are in the cloud's ``header.frame_id`` frame (the *sensor
 frame*), metres. ``timestamp`` is the header stamp in seconds; ``point_times`` are
 seconds relative to it (rule in ``flowslam.datasets.pointcloud2``). Frames are in
-bag (receive) order.
+bag (receive) order; their header stamps must increase strictly in that order (else
+``InputError`` naming the bag, topic and message index, or with ``fix_times`` a logged
+repair, ``flowslam.trajectory.checked_timestamps``, applied before the GT lookup).
 
 Ground truth: ``gt_topic`` may carry ``nav_msgs/msg/Odometry``,
 ``geometry_msgs/msg/PoseStamped``, ``PoseWithCovarianceStamped`` or
@@ -27,15 +29,16 @@ from __future__ import annotations
 import logging
 import struct
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
 from flowslam import geometry
-from flowslam.frame import Dataset, Frame, sanitize_frame
+from flowslam.frame import Dataset, Frame
 from flowslam.datasets.pointcloud2 import POINTCLOUD2, decode_pointcloud2, stamp_to_ns
 from flowslam.datasets.pose_interpolation import ScanPoses, poses_at_scans
 from flowslam.errors import InputError
+from flowslam.trajectory import checked_timestamps, unit_quaternions
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +100,15 @@ def _header_stamp_ns(raw: bytes | memoryview, is_ros2: bool) -> int:
     return sec * 1_000_000_000 + nsec
 
 
+def deserialize_message(deserialize: Callable[[Any, str], Any], raw: Any, msgtype: str, where: str) -> Any:
+    """``deserialize(raw, msgtype)``; a corrupt message (whatever the deserializer raises on it)
+    is an ``InputError`` naming ``where``."""
+    try:
+        return deserialize(raw, msgtype)
+    except Exception as e:  # noqa: BLE001 - the deserializer's failures on bad bytes are not typed
+        raise InputError(where, f"cannot deserialize {msgtype} ({e.__class__.__name__}: {e})") from None
+
+
 def _bag_errors() -> tuple[type[BaseException], ...]:
     from rosbags.highlevel import AnyReaderError
     from rosbags.rosbag1 import ReaderError as Reader1Error
@@ -113,6 +125,7 @@ class RosBag(Dataset):
         topic: the PointCloud2 topic; optional when the bag has exactly one.
         gt_topic: optional GT pose topic (Odometry / PoseStamped / ...).
         T_body_sensor: optional 4x4 extrinsic from the sensor into the GT body frame.
+        fix_times: repair header stamps that do not increase strictly instead of raising.
     """
 
     name = "rosbag"
@@ -123,8 +136,10 @@ class RosBag(Dataset):
         topic: str | None = None,
         gt_topic: str | None = None,
         T_body_sensor: np.ndarray | None = None,
+        fix_times: bool = False,
     ):
         super().__init__(path)
+        self.fix_times = fix_times
         self.bag_path = resolve_bag_path(self.path)
         self._errors = _bag_errors()
         self._reader: Any = None
@@ -198,7 +213,8 @@ class RosBag(Dataset):
         same = np.r_[False, self.bag_times_ns[1:] == self.bag_times_ns[:-1]]
         run_start = np.maximum.accumulate(np.where(~same, np.arange(len(same)), 0))
         self._ordinal = np.arange(len(same)) - run_start
-        self.stamps_ns = np.array(stamps, dtype=np.int64)
+        self.stamps_ns = checked_timestamps(np.array(stamps, dtype=np.int64), f"{self.bag_path} [{self.topic}]",
+                                            fix=self.fix_times, what="header stamps (ns)")
 
     def _read_gt(self, topics: dict[str, str], gt_topic: str, T_body_sensor: np.ndarray | None) -> None:
         typ = topics.get(gt_topic)
@@ -218,11 +234,10 @@ class RosBag(Dataset):
             raise self._read_error(self.bag_path, f"GT topic {gt_topic}", e) from None
         if not stamps:
             raise InputError(self.bag_path, f"GT topic {gt_topic} has no messages")
-        q = np.array(quats, dtype=np.float64)
-        norms = np.linalg.norm(q, axis=1)
-        if not np.all(norms > 1e-9) or not np.isfinite(q).all() or not np.isfinite(trans).all():
+        if not np.isfinite(trans).all():
             raise InputError(self.bag_path, f"GT topic {gt_topic} has a zero or non-finite pose")
-        poses = geometry.from_quat_xyzw(q / norms[:, None], np.array(trans))
+        q = unit_quaternions(np.array(quats), self.bag_path, f"GT topic {gt_topic}")
+        poses = geometry.from_quat_xyzw(q, np.array(trans, dtype=np.float64))
         if T_body_sensor is not None:
             poses = poses @ np.asarray(T_body_sensor, dtype=np.float64)
         where = f"{self.bag_path} [{gt_topic}]"
@@ -238,10 +253,7 @@ class RosBag(Dataset):
 
     def _frame(self, index: int, conn: Any, raw: bytes) -> Frame:
         where = self._source(index)
-        try:
-            msg = self._reader.deserialize(raw, conn.msgtype)
-        except self._errors as e:
-            raise InputError(where, f"cannot deserialize PointCloud2 ({e})") from None
+        msg = deserialize_message(self._reader.deserialize, raw, conn.msgtype, where)
         cloud = decode_pointcloud2(msg, where)
         gt = None if self.gt is None else self.gt.at(index)
         return Frame(
@@ -276,7 +288,7 @@ class RosBag(Dataset):
         try:
             stream = self._reader.messages(connections=self._connections)
             for index, (conn, _t, raw) in enumerate(stream):
-                yield sanitize_frame(self._frame(index, conn, raw))
+                yield self.sanitized(self._frame(index, conn, raw))
         except self._errors as e:
             raise self._read_error(self.bag_path, f"topic {self.topic}", e) from None
 

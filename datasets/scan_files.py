@@ -11,13 +11,16 @@ reader (seconds).
 
 from __future__ import annotations
 
+import math
 import re
+import tokenize
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from flowslam.errors import InputError
+from flowslam.trajectory import checked_timestamps
 
 ScanArrays = tuple[np.ndarray, "np.ndarray | None"]
 
@@ -61,25 +64,66 @@ def read_kitti_bin(path: str | Path) -> ScanArrays:
     return rec[:, :3].astype(np.float64), rec[:, 3].astype(np.float64)
 
 
+def _real_numeric(dtype: np.dtype) -> bool:
+    """A scalar integer or floating-point type (not bool, complex, string, object or sub-array)."""
+    return dtype.kind in "iuf" and dtype.shape == ()
+
+
+_NPY_ERRORS = (ValueError, OSError, EOFError, SyntaxError, TypeError, tokenize.TokenError)
+"""What numpy raises on a corrupt ``.npy`` file (its header is a Python literal, parsed by ``ast``)."""
+
+
+def _check_npy_size(path: Path) -> None:
+    """``InputError`` unless the data after the ``.npy`` header are exactly what it declares.
+
+    Checked before ``np.load``, which ignores extra bytes and would first allocate the
+    declared size (a corrupt shape can ask for terabytes).
+    """
+    from numpy.lib import format as npy
+
+    with open(path, "rb") as f:
+        if f.read(6) != npy.MAGIC_PREFIX:
+            raise InputError(path, "not a readable .npy array (no NUMPY magic at its start; an .npz archive?)")
+        f.seek(0)
+        version = npy.read_magic(f)
+        read_header = npy.read_array_header_1_0 if version == (1, 0) else npy.read_array_header_2_0
+        shape, _fortran, dtype = read_header(f)
+        have = path.stat().st_size - f.tell()
+    need = math.prod(shape) * dtype.itemsize
+    if dtype.hasobject:
+        raise InputError(path, f"holds Python objects (dtype {dtype}), not numbers")
+    if have != need:
+        raise InputError(path, f"holds {have} data bytes but its header declares shape {shape} of {dtype} = "
+                               f"{need} bytes{' (truncated .npy?)' if have < need else ''}")
+
+
 def read_npy_scan(path: str | Path) -> ScanArrays:
     """Read a ``.npy`` scan: a numeric (N,3) ``x y z`` or (N,4+) ``x y z intensity ...`` array,
-    or a structured array with fields ``x``, ``y``, ``z`` (and optionally ``intensity``)."""
+    or a structured array with fields ``x``, ``y``, ``z`` (and optionally ``intensity``).
+
+    Integer or floating-point values only; anything else (an ``.npz`` archive, object,
+    complex or string data, another shape) raises ``InputError``.
+    """
     path = Path(path)
     try:
+        _check_npy_size(path)
         arr = np.load(path, allow_pickle=False)
     except FileNotFoundError:
         raise InputError(path, "file does not exist") from None
-    except (ValueError, OSError, EOFError) as e:
-        raise InputError(path, f"not a readable .npy array ({e})") from None
+    except _NPY_ERRORS as e:
+        raise InputError(path, f"not a readable .npy array ({e.__class__.__name__}: {e})") from None
     if arr.dtype.names:
         missing = [k for k in "xyz" if k not in arr.dtype.names]
         if missing:
             raise InputError(path, f"structured array lacks fields {missing} (has {list(arr.dtype.names)})")
+        bad = [k for k in ("x", "y", "z", "intensity") if k in arr.dtype.names and not _real_numeric(arr.dtype[k])]
+        if bad:
+            raise InputError(path, f"structured array field {bad[0]!r} has type {arr.dtype[bad[0]]}, not a number")
         arr = arr.reshape(-1)
-        pts = np.column_stack([arr[k].astype(np.float64) for k in "xyz"])
+        pts = np.column_stack([arr[k].astype(np.float64) for k in "xyz"]).reshape(-1, 3)
         inten = arr["intensity"].astype(np.float64) if "intensity" in arr.dtype.names else None
         return pts, inten
-    if arr.ndim != 2 or arr.shape[1] < 3 or not np.issubdtype(arr.dtype, np.number):
+    if arr.ndim != 2 or arr.shape[1] < 3 or not _real_numeric(arr.dtype):
         raise InputError(
             path, f"array has shape {arr.shape} and dtype {arr.dtype}; expected numeric (N,3) or (N,4+)"
         )
@@ -87,32 +131,17 @@ def read_npy_scan(path: str | Path) -> ScanArrays:
 
 
 def read_ply(path: str | Path) -> ScanArrays:
-    """Read a ``.ply`` point cloud with Open3D's tensor IO (keeps an ``intensity`` property)."""
-    return _read_open3d(Path(path))
+    """Read a ``.ply`` point cloud (``flowslam.datasets.ply``; keeps an ``intensity`` property)."""
+    from flowslam.datasets.ply import read_ply as _read
 
-
-def _read_open3d(path: Path) -> ScanArrays:
-    import open3d as o3d  # heavy: imported only when such a file is read
-
-    if not path.is_file():
-        raise InputError(path, "file does not exist")
-    pc = o3d.t.io.read_point_cloud(str(path))
-    if "positions" not in pc.point or len(pc.point.positions) == 0:
-        raise InputError(path, "Open3D read no points from this file (corrupt or unsupported?)")
-    pts = pc.point.positions.numpy().astype(np.float64)
-    inten = pc.point.intensity.numpy().reshape(-1).astype(np.float64) if "intensity" in pc.point else None
-    return pts, inten
+    return _read(Path(path))
 
 
 def read_pcd_scan(path: str | Path) -> ScanArrays:
-    """Read a ``.pcd`` scan (ASCII or binary by our parser; binary_compressed via Open3D)."""
+    """Read a ``.pcd`` scan (``DATA ascii``, ``binary`` or ``binary_compressed``; ``flowslam.datasets.pcd``)."""
     from flowslam.datasets.pcd import read_pcd
 
-    path = Path(path)
-    cloud = read_pcd(path)
-    if cloud is None:  # binary_compressed: LZF, left to Open3D
-        return _read_open3d(path)
-    return cloud
+    return read_pcd(Path(path))
 
 
 _READERS: dict[str, Callable[[Path], ScanArrays]] = {
@@ -132,11 +161,12 @@ def read_scan(path: str | Path) -> ScanArrays:
     return reader(path)
 
 
-def read_times_file(path: str | Path, expected: int | None = None) -> np.ndarray:
+def read_times_file(path: str | Path, expected: int | None = None, fix: bool = False) -> np.ndarray:
     """Read a ``times.txt``: one timestamp per line in seconds -> (N,) float64.
 
-    Raises ``InputError`` for unreadable or non-numeric content, or when
-    ``expected`` is given and the line count differs.
+    Raises ``InputError`` for unreadable, non-numeric or non-finite content, when
+    ``expected`` is given and the line count differs, or when the times do not
+    increase strictly (repaired instead with ``fix``: ``checked_timestamps``).
     """
     path = Path(path)
     try:
@@ -153,4 +183,4 @@ def read_times_file(path: str | Path, expected: int | None = None) -> np.ndarray
         raise InputError(path, "times file contains NaN or inf")
     if expected is not None and len(times) != expected:
         raise InputError(path, f"has {len(times)} timestamps but there are {expected} scans")
-    return times
+    return checked_timestamps(times, path, fix=fix)

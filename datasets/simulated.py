@@ -88,11 +88,11 @@ def is_simulated(path: Path) -> bool:
 
 class SimulatedSequence(KittiOdometry):
     """A simulated sequence (module doc). ``path``: the simulation root (or its
-    ``sequences/00`` / ``velodyne`` folder)."""
+    ``sequences/00`` / ``velodyne`` folder); ``fix_times`` as for KITTI."""
 
     name = "simulated"
 
-    def __init__(self, path: str | Path, sequence: str | int | None = None):
+    def __init__(self, path: str | Path, sequence: str | int | None = None, fix_times: bool = False):
         path = Path(path)
         if not path.exists():
             raise InputError(path, "does not exist")
@@ -103,7 +103,7 @@ class SimulatedSequence(KittiOdometry):
             self.manifest = json.loads((root / MANIFEST).read_text())
         except (OSError, ValueError) as e:
             raise InputError(root / MANIFEST, f"cannot read the manifest ({e})") from None
-        super().__init__(path, sequence=sequence, vertical_correction_deg=0.0)
+        super().__init__(path, sequence=sequence, vertical_correction_deg=0.0, fix_times=fix_times)
         self.root = root
         self.gt_dir = self.sequence_dir / "gt"
         self.distortion = bool(self.manifest.get("distortion", False))

@@ -119,6 +119,8 @@ def run(
         None, "--kitti-correction-deg", help="KITTI beam elevation correction (default 0.205; 0 = off)."),
     first: Optional[int] = typer.Option(None, "--first", help="First frame index."),
     max_frames: Optional[int] = typer.Option(None, "--max-frames", "-n", help="Process at most N frames."),
+    fix_times: bool = typer.Option(
+        False, "--fix-times", help="Repair scan timestamps that do not increase strictly (logged) instead of stopping."),
     no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
 ):
     """Estimate the trajectory of SEQUENCE and write it (TUM, KITTI), metrics and a plot."""
@@ -133,6 +135,7 @@ def run(
             "dataset.sequence": sequence_id, "dataset.poses": poses and str(poses),
             "dataset.kitti_vertical_correction_deg": kitti_correction,
             "dataset.first_frame": first, "dataset.max_frames": max_frames,
+            "dataset.fix_times": fix_times or None,
         }
         cfg = load_config(
             config, frontend=frontend, backend=backend, output_dir=output_dir and str(output_dir), variant=variant,

@@ -14,6 +14,12 @@ class InputError(Exception):
     """
 
     def __init__(self, where: str | Path | None, problem: str):
-        self.where = str(where) if where is not None else None
-        self.problem = problem
-        super().__init__(f"{self.where}: {problem}" if self.where else problem)
+        self.where = _one_line(str(where)) if where is not None else None
+        self.problem = _one_line(problem)
+        super().__init__(f"{self.where}: {self.problem}" if self.where else self.problem)
+
+
+def _one_line(text: str) -> str:
+    """``text`` with its line breaks (e.g. inside a library's exception message) shown as `` / ``."""
+    parts = text.splitlines()
+    return text if parts == [text] else " / ".join(p.strip() for p in parts if p.strip())

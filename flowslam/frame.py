@@ -37,7 +37,11 @@ from flowslam.errors import InputError
 log = logging.getLogger(__name__)
 
 MIN_VALID_POINTS = 100
-"""A scan with fewer finite points than this is rejected as bad input."""
+"""A scan with fewer usable points (finite, within ``max_coordinate_m``) than this is rejected as bad input."""
+
+MAX_COORDINATE_M = 1000.0
+"""Default plausible range (m): points with any ``|x|``, ``|y|`` or ``|z|`` beyond it are dropped
+(``DatasetConfig.max_coordinate_m``)."""
 
 
 @dataclass
@@ -71,33 +75,52 @@ class Frame:
 _PER_POINT = ("intensity", "point_times", "gt_flow", "gt_dynamic", "gt_class", "gt_instance")
 
 
-def sanitize_frame(frame: Frame, min_points: int = MIN_VALID_POINTS) -> Frame:
-    """Drop points with NaN/inf coordinates (logging the count) and reject near-empty scans.
+def _keep_points(frame: Frame, keep: np.ndarray) -> None:
+    """Filter the points and every per-point array (fields and ``extras``) by the mask ``keep``."""
+    n = len(keep)
+    for name in _PER_POINT:
+        arr = getattr(frame, name)
+        if arr is not None:
+            setattr(frame, name, np.asarray(arr)[keep])
+    for key, arr in frame.extras.items():  # per-point arrays kept in extras
+        if isinstance(arr, np.ndarray) and arr.ndim >= 1 and len(arr) == n:
+            frame.extras[key] = arr[keep]
+    frame.points = frame.points[keep]
 
-    Every per-point array is filtered with the same mask. Raises ``InputError``
-    naming ``frame.source`` when fewer than ``min_points`` valid points remain.
+
+def sanitize_frame(
+    frame: Frame, min_points: int = MIN_VALID_POINTS, max_coordinate_m: float = MAX_COORDINATE_M
+) -> Frame:
+    """Drop unusable points and reject near-empty scans.
+
+    A point is dropped when a coordinate is NaN/inf (each such scan logs the count) or
+    its ``|x|``, ``|y|`` or ``|z|`` exceeds ``max_coordinate_m`` (metres, sensor frame; not
+    logged here, see ``Dataset.sanitized``). The counts go to
+    ``frame.extras["dropped_nonfinite"]`` and ``frame.extras["dropped_out_of_range"]``.
+    Every per-point array is filtered with the same mask. Raises ``InputError`` naming
+    ``frame.source`` when fewer than ``min_points`` usable points remain.
     """
     pts = np.asarray(frame.points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InputError(frame.source, f"points have shape {pts.shape}, expected (N, 3)")
-    n_bad = 0
-    if not np.isfinite(pts).all():  # fast path: one pass, no per-row mask for clean scans
-        ok = np.isfinite(pts).all(axis=1)
-        n_bad = int(len(ok) - ok.sum())
-        log.warning("%s: dropped %d points with NaN/inf coordinates", frame.source, n_bad)
-        for name in _PER_POINT:
-            arr = getattr(frame, name)
-            if arr is not None:
-                setattr(frame, name, np.asarray(arr)[ok])
-        for key, arr in frame.extras.items():  # per-point arrays kept in extras
-            if isinstance(arr, np.ndarray) and arr.ndim >= 1 and len(arr) == len(ok):
-                frame.extras[key] = arr[ok]
-        pts = pts[ok]
     frame.points = pts
-    frame.extras["dropped_nonfinite"] = n_bad
-    if len(pts) < min_points:
+    n_nonfinite = n_far = 0
+    # fast path: one reduction for clean scans (NaN makes the comparison False)
+    if len(pts) and not np.abs(pts).max() <= max_coordinate_m:
+        finite = np.isfinite(pts).all(axis=1)
+        with np.errstate(invalid="ignore"):
+            near = (np.abs(pts) <= max_coordinate_m).all(axis=1)
+        n_nonfinite = int(len(pts) - finite.sum())
+        n_far = int(finite.sum() - near.sum())
+        if n_nonfinite:
+            log.warning("%s: dropped %d points with NaN/inf coordinates", frame.source, n_nonfinite)
+        _keep_points(frame, near)
+    frame.extras["dropped_nonfinite"] = n_nonfinite
+    frame.extras["dropped_out_of_range"] = n_far
+    if len(frame.points) < min_points:
+        far = f"; {n_far} dropped beyond {max_coordinate_m:g} m, see dataset.max_coordinate_m" if n_far else ""
         raise InputError(
-            frame.source, f"only {len(pts)} valid points in this scan (need at least {min_points})"
+            frame.source, f"only {len(frame.points)} valid points in this scan (need at least {min_points}{far})"
         )
     return frame
 
@@ -106,13 +129,17 @@ class Dataset:
     """Base class of all readers: a random-access sequence of ``Frame``.
 
     Subclasses set ``name``, ``path`` and implement ``__len__`` and ``_load(i)``;
-    ``__getitem__`` sanitises every frame. ``gt_poses`` is an optional (N,4,4)
-    array of ``T_world_sensor`` and ``timestamps`` an (N,) array in seconds.
+    ``__getitem__`` sanitises every frame (``sanitized``). ``gt_poses`` is an optional
+    (N,4,4) array of ``T_world_sensor`` and ``timestamps`` an (N,) array in seconds,
+    strictly increasing (readers check it with ``flowslam.trajectory.checked_timestamps``).
     """
 
     name: str = "dataset"
     gt_poses: np.ndarray | None = None
     timestamps: np.ndarray | None = None
+    max_coordinate_m: float = MAX_COORDINATE_M
+    """Plausible range of coordinates (m), set from ``DatasetConfig`` by ``open_dataset``."""
+    _range_logged: bool = False
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -126,7 +153,19 @@ class Dataset:
     def __getitem__(self, index: int) -> Frame:
         if not 0 <= index < len(self):
             raise IndexError(index)
-        return sanitize_frame(self._load(index))
+        return self.sanitized(self._load(index))
+
+    def sanitized(self, frame: Frame) -> Frame:
+        """``sanitize_frame`` with this dataset's ``max_coordinate_m``; the first scan of the
+        sequence that loses points beyond it logs one warning line with the count."""
+        frame = sanitize_frame(frame, max_coordinate_m=self.max_coordinate_m)
+        n_far = frame.extras["dropped_out_of_range"]
+        if n_far and not self._range_logged:
+            self._range_logged = True
+            log.warning("%s: dropped %d points with a coordinate beyond %g m (dataset.max_coordinate_m); "
+                        "later scans of this sequence count theirs in frame.extras['dropped_out_of_range']",
+                        frame.source, n_far, self.max_coordinate_m)
+        return frame
 
     def __iter__(self) -> Iterator[Frame]:
         for i in range(len(self)):

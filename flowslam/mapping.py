@@ -1,25 +1,50 @@
-"""The static map: each scan's static points, placed with the (optimised) poses.
+"""The static map and the removed (dynamic) points, placed with the (optimised) poses.
 
 Frames and units: points are kept per scan in that scan's *sensor frame* (m), so the
-map can be rebuilt with any trajectory (the backend's poses change after loop
-closures); :meth:`StaticMapBuilder.build` maps them into the world with
-``T_world_sensor`` and voxel-downsamples the union (voxel centroids).
+maps can be rebuilt with any trajectory (the backend's poses change after loop
+closures); :meth:`StaticMapBuilder.cloud` maps them into the world with
+``T_world_sensor`` and voxel-downsamples the union (voxel centroids, mean intensity).
 
-Memory bound: each scan is voxel-downsampled on arrival (``voxel_size``), capped at
-``max_points_per_frame`` points (seeded random subset), and stored as int16
-centimetres (6 bytes a point; coordinates beyond +-327.67 m in the sensor frame are
-dropped and counted). A scan has 32k (KITTI) to 38k (AV2) 0.2 m voxels; the default
-cap of 30000 costs 180 kB a scan, ~820 MB for the 4541 scans of KITTI 00 (lower the
-cap or raise ``voxel_size`` for long sequences).
+Per-scan storage (the memory bound)
+-----------------------------------
+- Static points: voxel-downsampled on arrival (``voxel_size``; centroid and mean
+  intensity per voxel), capped at ``max_points_per_frame`` (seeded random subset),
+  stored as int16 centimetres plus a float16 intensity: 8 bytes a point. A scan has
+  32k (KITTI) to 38k (AV2) 0.2 m voxels; the run's default cap of 10000
+  (``output.map_points_per_frame``) costs 80 kB a scan, 360 MB for the 4541 scans of
+  KITTI 00 (lower the cap or raise ``voxel_size`` for long sequences).
+- Dynamic points (those the frontend marked dynamic, i.e. removed from the map): one
+  point per voxel and instance (the first; coordinates and ids unaveraged), same cap,
+  int16 centimetres + float16 intensity + int32 instance id: 12 bytes a point, about
+  1-50 kB a scan in traffic (100-4000 dynamic points).
+- Coordinates beyond +-327.67 m in the sensor frame are dropped and counted
+  (``dropped_out_of_range``). Intensity keeps about 3 significant digits (float16;
+  values beyond +-65504 are clipped).
 
-Dynamic removal: only the points a frontend marks static are kept. A frontend
-without a static mask (``kiss-icp``; ``gt-flow``, which does no segmentation) gives
-every point of each scan: no dynamic removal then.
+Intensity is the reader's value as it is (KITTI reflectance 0..1, AV2 0..255, ...);
+scans without intensity (``Frame.intensity`` None) give 0, so the attribute is always
+there.
+
+Files (:func:`write_point_cloud`: Open3D tensor IO, binary, format from the suffix)
+-----------------------------------------------------------------------------------
+- ``static_map.ply`` / ``static_map.pcd``: float32 ``x y z`` (world frame, m) and float32
+  ``intensity`` (voxel mean): PCL's ``PointXYZI``.
+- ``dynamic_points.ply``: float32 ``x y z`` (world frame, m, each point where it was at
+  its own scan), float32 ``intensity``, int32 ``instance`` (the frontend's instance id,
+  -1 where it gives none) and int32 ``frame`` (dataset index of the scan).
+
+Dynamic removal: only the points a frontend marks static go into the map, the others
+into the dynamic points. A frontend without a static mask (``kiss-icp``; ``gt-flow``,
+which does no segmentation) gives every point of each scan to the map: no dynamic
+removal then, and no dynamic points (``StaticMapBuilder.removes_dynamic`` is False).
 """
 
 from __future__ import annotations
 
+import errno
 import logging
+import os
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -29,11 +54,17 @@ from flowslam import geometry
 
 log = logging.getLogger(__name__)
 
-__all__ = ["StaticMapBuilder", "voxel_ids", "voxel_downsample", "poses_by_index", "write_ply"]
+__all__ = [
+    "StaticMapBuilder", "DynamicPoints", "MapCloud", "write_point_cloud",
+    "voxel_ids", "voxel_means", "voxel_downsample", "first_per_cell", "poses_by_index",
+]
 
 #: Storage resolution of the per-scan points (m) and the int16 range it allows.
 STORAGE_RESOLUTION_M = 0.01
 _INT16_MAX = 32767
+_FLOAT16_MAX = float(np.finfo(np.float16).max)
+_HEADER_ALLOWANCE = 1024
+"""Bytes reserved for a PLY/PCD header on top of the point data (Open3D's are < 400)."""
 
 
 def voxel_ids(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
@@ -53,19 +84,38 @@ def voxel_ids(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.nda
     return inverse.reshape(-1), counts
 
 
-def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
-    """(M,3) centroids of the occupied ``voxel_size`` voxels of (N,3) points (vectorised)."""
+def voxel_means(
+    points: np.ndarray, voxel_size: float, values: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(centroids (M,3), mean of values per voxel (M,) or None)`` of the occupied
+    ``voxel_size`` voxels of (N,3) points (m) carrying (N,) ``values`` (vectorised)."""
     points = np.asarray(points, dtype=np.float64)
-    if len(points) == 0:
-        return np.zeros((0, 3))
     if not voxel_size > 0:
         raise ValueError(f"voxel_size must be > 0 (m), got {voxel_size}")
+    if len(points) == 0:
+        return np.zeros((0, 3)), None if values is None else np.zeros(0)
     inverse, counts = voxel_ids(points, voxel_size)
     V = len(counts)
-    out = np.empty((V, 3))
+    centroids = np.empty((V, 3))
     for i in range(3):
-        out[:, i] = np.bincount(inverse, points[:, i], V) / counts
-    return out
+        centroids[:, i] = np.bincount(inverse, points[:, i], V) / counts
+    if values is None:
+        return centroids, None
+    return centroids, np.bincount(inverse, np.asarray(values, dtype=np.float64).reshape(-1), V) / counts
+
+
+def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
+    """(M,3) centroids of the occupied ``voxel_size`` voxels of (N,3) points (vectorised)."""
+    return voxel_means(points, voxel_size)[0]
+
+
+def first_per_cell(points: np.ndarray, voxel_size: float, labels: np.ndarray) -> np.ndarray:
+    """Sorted indices of one point (the first) per (voxel, label) cell of (N,3) points."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.int64)
+    inverse, _ = voxel_ids(np.asarray(points, dtype=np.float64), voxel_size)
+    cells = inverse.astype(np.int64) * (1 << 32) + (np.asarray(labels, dtype=np.int64) & 0xFFFFFFFF)
+    return np.sort(np.unique(cells, return_index=True)[1])
 
 
 def poses_by_index(
@@ -85,29 +135,216 @@ def poses_by_index(
     return {int(i): arr[k] for k, i in enumerate(idx)}
 
 
-class StaticMapBuilder:
-    """Collects static points per scan; builds the world map from any set of poses."""
+@dataclass
+class MapCloud:
+    """Points in the world frame (m) with their per-point attributes."""
+
+    positions: np.ndarray
+    """(M,3) float64, world frame, m."""
+    intensity: np.ndarray
+    """(M,) float32, the readers' intensity (0 where a scan had none)."""
+    labels: dict[str, np.ndarray] = field(default_factory=dict)
+    """Integer attributes, each (M,) (e.g. ``instance``, ``frame``), written as int32."""
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+
+def write_point_cloud(path: str | Path, cloud: MapCloud) -> Path:
+    """Write ``cloud`` as a binary PLY or PCD (from the suffix of ``path``) with Open3D's
+    tensor IO: float32 ``x y z``, float32 ``intensity``, int32 labels. Returns ``path``.
+
+    Open3D reports a failed write as a bare ``False`` (PCD) or not at all (a PLY cut at a
+    file-size limit), so the file's size is first claimed through the OS: no space, a
+    size limit or no permission is then an ``OSError`` naming the real reason here. An
+    empty cloud is a ``ValueError`` (Open3D writes none)."""
+    import open3d as o3d
+
+    path = Path(path)
+    if path.suffix.lower() not in (".ply", ".pcd"):
+        raise ValueError(f"{path}: a point cloud is written as .ply or .pcd")
+    if len(cloud) == 0:
+        raise ValueError(f"{path}: no points to write")
+    columns = {"intensity": np.asarray(cloud.intensity, dtype=np.float32)}
+    columns.update({name: np.asarray(v, dtype=np.int32) for name, v in cloud.labels.items()})
+    tensor = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(cloud.positions, dtype=np.float32)))
+    for name, values in columns.items():
+        tensor.point[name] = o3d.core.Tensor(np.ascontiguousarray(values.reshape(-1, 1)))
+    payload = len(cloud) * 4 * (3 + len(columns))
+    _reserve(path, payload + _HEADER_ALLOWANCE)
+    if not o3d.t.io.write_point_cloud(str(path), tensor):
+        raise OSError(errno.EIO, "Open3D could not write the point cloud", str(path))
+    if path.stat().st_size < payload:
+        raise OSError(errno.EIO, "Open3D wrote an incomplete point cloud", str(path))
+    return path
+
+
+def _reserve(path: Path, nbytes: int) -> None:
+    """Allocate ``nbytes`` for ``path`` (``posix_fallocate`` where there is one)."""
+    with open(path, "wb") as f:
+        if hasattr(os, "posix_fallocate"):
+            os.posix_fallocate(f.fileno(), 0, nbytes)
+        else:  # pragma: no cover - macOS, Windows
+            f.truncate(nbytes)
+
+
+@dataclass
+class _Scan:
+    """One scan's stored points: int16 centimetres (sensor frame), float16 intensity,
+    int32 instance ids (or None)."""
+
+    points: np.ndarray
+    intensity: np.ndarray
+    instance: np.ndarray | None = None
+
+
+class _ScanStore:
+    """Per-scan points (sensor frame) kept compactly (module doc); into the world with any poses."""
+
+    def __init__(self, max_points_per_frame: int, seed: int, what: str):
+        self.max_points_per_frame = int(max_points_per_frame)
+        self.seed = seed
+        self.what = what
+        self.scans: dict[int, _Scan] = {}
+        self.dropped_out_of_range = 0
+        self.version = 0
+        """Count of ``put`` calls (invalidates built clouds)."""
+
+    def put(self, index: int, points: np.ndarray, intensity: np.ndarray, instance: np.ndarray | None = None) -> int:
+        """Store (replace) scan ``index``: (n,3) points (m, sensor frame), (n,) intensity and
+        instance ids, capped (seeded random subset) and quantised. Returns the points kept."""
+        index = int(index)
+        if len(points) > self.max_points_per_frame:
+            rng = np.random.default_rng([self.seed, index])
+            keep = np.sort(rng.choice(len(points), self.max_points_per_frame, replace=False))
+            points, intensity = points[keep], intensity[keep]
+            instance = None if instance is None else instance[keep]
+        q = np.round(points / STORAGE_RESOLUTION_M)
+        ok = (np.abs(q) <= _INT16_MAX).all(axis=1)
+        self.dropped_out_of_range += int(len(q) - np.count_nonzero(ok))
+        self.scans[index] = _Scan(
+            q[ok].astype(np.int16),
+            np.clip(intensity[ok], -_FLOAT16_MAX, _FLOAT16_MAX).astype(np.float16),
+            None if instance is None else np.asarray(instance)[ok].astype(np.int32),
+        )
+        self.version += 1
+        return int(np.count_nonzero(ok))
+
+    @property
+    def n_points(self) -> int:
+        return int(sum(len(s.points) for s in self.scans.values()))
+
+    def points_of(self, index: int) -> np.ndarray:
+        """Stored points of scan ``index`` (n,3), sensor frame, m."""
+        return self.scans[int(index)].points.astype(np.float64) * STORAGE_RESOLUTION_M
+
+    def world(self, lookup: Mapping[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every stored scan with a pose in ``lookup`` (``{index: T_world_sensor}``), in index
+        order: ``(positions (M,3) world m, intensity (M,) float32, instance (M,) int32 (-1
+        where none), frame (M,) int32)``. Scans without a pose are left out (logged)."""
+        parts, missing = [], []
+        for index in sorted(self.scans):
+            if index not in lookup:
+                missing.append(index)
+                continue
+            scan = self.scans[index]
+            n = len(scan.points)
+            instance = np.full(n, -1, np.int32) if scan.instance is None else scan.instance
+            parts.append((geometry.transform_points(lookup[index], self.points_of(index)),
+                          scan.intensity.astype(np.float32), instance, np.full(n, index, np.int32)))
+        if missing:
+            log.warning("%s: %d scan(s) without a pose left out (first: %d)", self.what, len(missing), missing[0])
+        if not parts:
+            return np.zeros((0, 3)), np.zeros(0, np.float32), np.zeros(0, np.int32), np.zeros(0, np.int32)
+        return tuple(np.concatenate(column) for column in zip(*parts))
+
+
+def _intensity_or_zeros(intensity: np.ndarray | None, n: int) -> np.ndarray:
+    if intensity is None or len(intensity) != n:
+        return np.zeros(n)
+    return np.asarray(intensity, dtype=np.float64).reshape(-1)
+
+
+class DynamicPoints:
+    """The points a frontend marked dynamic, per scan (module doc); world cloud with
+    ``instance`` and ``frame`` labels from any set of poses."""
 
     def __init__(self, voxel_size: float = 0.2, max_points_per_frame: int = 30000, seed: int = 0):
         if not voxel_size > 0:
             raise ValueError(f"voxel_size must be > 0 (m), got {voxel_size}")
         self.voxel_size = float(voxel_size)
-        self.max_points_per_frame = int(max_points_per_frame)
-        self.seed = seed
-        self.frames: dict[int, np.ndarray] = {}
-        """scan index -> (n,3) int16 points in its sensor frame, centimetres."""
-        self.dropped_out_of_range = 0
+        self.store = _ScanStore(max_points_per_frame, seed, "dynamic points")
+
+    def add(self, index: int, points_sensor: np.ndarray, intensity: np.ndarray | None = None,
+            instance_ids: np.ndarray | None = None) -> int:
+        """Keep scan ``index``'s dynamic points ((n,3) sensor frame, m) with their intensity
+        and instance ids ((n,), None = 0 / -1): one per voxel and instance. Returns the count kept."""
+        pts = np.asarray(points_sensor, dtype=np.float64).reshape(-1, 3)
+        ids = np.full(len(pts), -1, np.int64) if instance_ids is None else np.asarray(instance_ids).reshape(-1)
+        inten = _intensity_or_zeros(intensity, len(pts))
+        finite = np.isfinite(pts).all(axis=1)
+        pts, ids, inten = pts[finite], ids[finite], inten[finite]
+        keep = first_per_cell(pts, self.voxel_size, ids)
+        return self.store.put(index, pts[keep], inten[keep], ids[keep])
+
+    @property
+    def n_points(self) -> int:
+        return self.store.n_points
+
+    def cloud(self, poses: Mapping[int, np.ndarray] | np.ndarray, indices: Sequence[int] | None = None) -> MapCloud:
+        """Every stored point in the world (its own scan's ``T_world_sensor``; ``poses`` as in
+        :func:`poses_by_index`), not merged across scans."""
+        positions, intensity, instance, frame = self.store.world(poses_by_index(poses, indices))
+        return MapCloud(positions, intensity, {"instance": instance, "frame": frame})
+
+    def write(self, path: str | Path, poses: Mapping[int, np.ndarray] | np.ndarray,
+              indices: Sequence[int] | None = None) -> int:
+        """Write ``dynamic_points.ply`` (module doc) with ``poses``; returns the point count."""
+        cloud = self.cloud(poses, indices)
+        write_point_cloud(path, cloud)
+        return len(cloud)
+
+
+class StaticMapBuilder:
+    """Collects static points per scan (and, in ``dynamic``, the points marked dynamic);
+    builds the world map from any set of poses."""
+
+    def __init__(self, voxel_size: float = 0.2, max_points_per_frame: int = 30000, seed: int = 0):
+        if not voxel_size > 0:
+            raise ValueError(f"voxel_size must be > 0 (m), got {voxel_size}")
+        self.voxel_size = float(voxel_size)
+        self.store = _ScanStore(max_points_per_frame, seed, "static map")
+        self.dynamic = DynamicPoints(voxel_size, max_points_per_frame, seed)
+        """The points the frontend marked dynamic (``dynamic_points.ply``)."""
+        self.removes_dynamic = False
+        """True once a frontend output carried a static mask (then ``dynamic`` is meaningful)."""
         self.skipped_outputs = 0
         """Frontend outputs without per-point results from a per-point frontend (no points added)."""
         self._per_point_frontend = False
-        self._last_index: int | None = None
+        self._last: tuple[int, np.ndarray | None] | None = None
+        """(index, intensity) of the last frame seen by ``on_output``."""
+        self._built: tuple[tuple, MapCloud] | None = None
+
+    @property
+    def max_points_per_frame(self) -> int:
+        return self.store.max_points_per_frame
+
+    @property
+    def frames(self) -> dict[int, np.ndarray]:
+        """scan index -> (n,3) int16 points in its sensor frame, centimetres."""
+        return {index: scan.points for index, scan in self.store.scans.items()}
+
+    @property
+    def dropped_out_of_range(self) -> int:
+        return self.store.dropped_out_of_range
 
     # -- collecting -------------------------------------------------------------
 
-    def add(self, index: int, points_sensor: np.ndarray, static_mask: np.ndarray | None = None) -> int:
+    def add(self, index: int, points_sensor: np.ndarray, static_mask: np.ndarray | None = None,
+            intensity: np.ndarray | None = None) -> int:
         """Keep scan ``index``'s static points ((N,3) in its sensor frame, m; ``static_mask``
-        (N,) bool or None = all). Replaces an earlier entry of the same index. Returns the
-        number of points kept."""
+        (N,) bool or None = all; ``intensity`` (N,) or None = 0). Replaces an earlier entry
+        of the same index. Returns the number of points kept."""
         pts = np.asarray(points_sensor, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"points must be (N,3); got {pts.shape}")
@@ -117,87 +354,76 @@ class StaticMapBuilder:
             if mask.shape[0] != len(pts):
                 raise ValueError(f"static_mask must be (N,) with N={len(pts)}; got {mask.shape}")
             keep &= mask
-        pts = voxel_downsample(pts[keep], self.voxel_size)
-        if len(pts) > self.max_points_per_frame:
-            rng = np.random.default_rng([self.seed, int(index)])
-            pts = pts[np.sort(rng.choice(len(pts), self.max_points_per_frame, replace=False))]
-        q = np.round(pts / STORAGE_RESOLUTION_M)
-        in_range = (np.abs(q) <= _INT16_MAX).all(axis=1)
-        self.dropped_out_of_range += int(len(q) - np.count_nonzero(in_range))
-        self.frames[int(index)] = q[in_range].astype(np.int16)
-        return int(np.count_nonzero(in_range))
+        centroids, inten = voxel_means(pts[keep], self.voxel_size, _intensity_or_zeros(intensity, len(pts))[keep])
+        return self.store.put(index, centroids, inten)
 
     def on_output(self, frame, output) -> None:
         """``run_pipeline(on_output=...)`` adapter.
 
         Per-point outputs refer to the previous scan (``output.points``,
-        ``output.static_mask``), so they are stored under the previous scan's index.
-        Until a frontend has given per-point outputs, each scan's own points are stored
-        whole (``kiss-icp``: no dynamic removal); the first per-point output then
-        replaces that entry. Consequently, with a flow frontend the last scan of a
-        sequence (whose flow never comes) is not in the map.
+        ``output.static_mask``, ``output.instance_ids``), so they are stored under the
+        previous scan's index, with that scan's intensity (kept from the last call). The
+        points a static mask leaves out go to ``dynamic``. Until a frontend has given
+        per-point outputs, each scan's own points are stored whole (``kiss-icp``: no
+        dynamic removal); the first per-point output then replaces that entry.
+        Consequently, with a flow frontend the last scan of a sequence (whose flow never
+        comes) is not in the map.
         """
-        prev_index = self._last_index if self._last_index is not None else output.index - 1
-        self._last_index = int(frame.index)
+        last, self._last = self._last, (int(frame.index), frame.intensity)
+        prev_index, prev_intensity = last if last is not None else (output.index - 1, None)
         if output.points is not None:
             self._per_point_frontend = True
-            self.add(prev_index, output.points, output.static_mask)
+            self.add(prev_index, output.points, output.static_mask, prev_intensity)
+            if output.static_mask is not None:
+                self._add_dynamic(prev_index, output, prev_intensity)
         elif self._per_point_frontend:
             self.skipped_outputs += 1
         else:
-            self.add(frame.index, frame.points, None)
+            self.add(frame.index, frame.points, None, frame.intensity)
+
+    def _add_dynamic(self, index: int, output, intensity: np.ndarray | None) -> None:
+        self.removes_dynamic = True
+        dynamic = ~np.asarray(output.static_mask, dtype=bool).reshape(-1)
+        ids = None if output.instance_ids is None else np.asarray(output.instance_ids).reshape(-1)[dynamic]
+        self.dynamic.add(index, np.asarray(output.points)[dynamic],
+                         _intensity_or_zeros(intensity, len(dynamic))[dynamic], ids)
 
     @property
     def n_points(self) -> int:
         """Points stored over all scans."""
-        return int(sum(len(p) for p in self.frames.values()))
+        return self.store.n_points
 
     def points_of(self, index: int) -> np.ndarray:
         """Stored points of scan ``index`` (n,3), sensor frame, m."""
-        return self.frames[int(index)].astype(np.float64) * STORAGE_RESOLUTION_M
+        return self.store.points_of(index)
 
     # -- building ---------------------------------------------------------------
+
+    def cloud(self, poses: Mapping[int, np.ndarray] | np.ndarray, indices: Sequence[int] | None = None) -> MapCloud:
+        """The world-frame map: every stored scan mapped with its ``T_world_sensor`` (dict
+        ``index -> pose``, or (K,4,4) with ``indices``, see :func:`poses_by_index`), then
+        voxel-downsampled together (centroid, mean intensity). Scans without a pose are
+        left out (logged). The last result is kept until the points or the poses change
+        (``static_map.ply`` and ``.pcd`` build it once)."""
+        lookup = poses_by_index(poses, indices)
+        key = (self.store.version, tuple((i, lookup[i].tobytes()) for i in sorted(lookup) if i in self.store.scans))
+        if self._built is None or self._built[0] != key:
+            positions, intensity, _, _ = self.store.world(lookup)
+            centroids, mean_intensity = voxel_means(positions, self.voxel_size, intensity)
+            self._built = (key, MapCloud(centroids, mean_intensity.astype(np.float32)))
+        return self._built[1]
 
     def build(
         self, poses: Mapping[int, np.ndarray] | np.ndarray, indices: Sequence[int] | None = None
     ) -> np.ndarray:
-        """(M,3) world-frame map (m): every stored scan mapped with its ``T_world_sensor``
-        (dict ``index -> pose``, or (K,4,4) with ``indices``, see :func:`poses_by_index`),
-        then voxel-downsampled together. Scans without a pose are left out (logged)."""
-        lookup = poses_by_index(poses, indices)
-        parts = []
-        missing = []
-        for index in sorted(self.frames):
-            T = lookup.get(index)
-            if T is None:
-                missing.append(index)
-                continue
-            parts.append(geometry.transform_points(T, self.points_of(index)))
-        if missing:
-            log.warning("static map: %d scan(s) without a pose left out (first: %d)", len(missing), missing[0])
-        if not parts:
-            return np.zeros((0, 3))
-        return voxel_downsample(np.concatenate(parts), self.voxel_size)
+        """(M,3) world-frame map positions (m) of :meth:`cloud`."""
+        return self.cloud(poses, indices).positions
 
     def write(
         self, path: str | Path, poses: Mapping[int, np.ndarray] | np.ndarray, indices: Sequence[int] | None = None
     ) -> int:
-        """Build with ``poses`` and write a PLY; returns the number of map points."""
-        points = self.build(poses, indices)
-        write_ply(path, points)
-        return len(points)
-
-
-def write_ply(path: str | Path, points: np.ndarray) -> Path:
-    """Write (N,3) points (m) as a binary little-endian PLY with float32 ``x y z``."""
-    path = Path(path)
-    pts = np.ascontiguousarray(np.asarray(points, dtype="<f4").reshape(-1, 3))
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment flowslam static map (world frame, metres)\n"
-        f"element vertex {len(pts)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
-    )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(pts.tobytes())
-    return path
+        """Build with ``poses`` and write ``path`` (``.ply`` or ``.pcd``, :func:`write_point_cloud`);
+        returns the number of map points."""
+        cloud = self.cloud(poses, indices)
+        write_point_cloud(path, cloud)
+        return len(cloud)

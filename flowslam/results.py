@@ -10,10 +10,16 @@ the trajectory of the frames it processed):
 - ``gt_tum.txt``, ``gt_kitti.txt``: the dataset's GT for the processed frames.
 - ``config.yaml``: the configuration used.
 - ``metrics.json``: errors against GT (only when GT exists).
-- ``run.json``: what happened (frames, speed, error if any).
+- ``run.json``: what happened (frames, speed, error if any); written last, so it never
+  claims a file that is not on disk (``flowslam.slam.Slam.save``).
 - ``trajectory_topview.png``: estimate vs GT, seen from above.
-- ``static_map.ply``: the map (world frame, m) from the final poses, without the
-  points the frontend marked dynamic (written by ``flowslam.run``).
+- ``static_map.ply``, ``static_map.pcd``: the map (world frame, m; float32 x y z intensity,
+  voxel means) from the final poses, without the points the frontend marked dynamic
+  (written by ``flowslam.slam``, Open3D tensor IO).
+- ``dynamic_points.ply``: the points the frontend marked dynamic (removed from the map),
+  world frame with the final poses; x y z, intensity, instance (-1 none), frame.
+- ``graph.g2o``: the factor graph of a graph backend (``isam2``) with the final poses
+  (see ``flowslam.graph_export``).
 - ``moving_objects.csv``: per frame, each moving instance's centroid and velocity
   (world frame; only frontends that give instance ids).
 """

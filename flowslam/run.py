@@ -1,4 +1,5 @@
-"""``flowslam run`` as a library call: open a sequence, run the pipeline, write the results.
+"""``flowslam run`` as a library call: open a sequence, drive a :class:`flowslam.slam.Slam`
+over it, write the results folder.
 
 >>> from flowslam.config import load_config
 >>> from flowslam.run import run_sequence
@@ -9,26 +10,20 @@
 from __future__ import annotations
 
 import logging
-import platform
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
 
-from flowslam import __version__
 from flowslam.config import PipelineConfig
 from flowslam.datasets import frame_range, open_dataset
-from flowslam.fallbacks import summarize_fallbacks
-from flowslam.interfaces import Frontend
-from flowslam.loop_closure import make_loop_closer
-from flowslam.mapping import StaticMapBuilder
-from flowslam.moving_objects import MovingObjectsLog
-from flowslam.pipeline import RunResult, run_pipeline
-from flowslam.registry import make_backend, make_frontend
 from flowslam.errors import InputError
-from flowslam.results import create_results_dir, link_latest, write_atomic, write_json, write_results
-from flowslam.signals import deferred_signals, describe_stop
+from flowslam.interfaces import Frontend
+from flowslam.pipeline import RunResult, drive
+from flowslam.results import create_results_dir, link_latest
+from flowslam.signals import deferred_signals
+from flowslam.slam import Slam
 from flowslam.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -51,33 +46,6 @@ def _ground_truth(dataset, result: RunResult) -> Trajectory | None:
     if dataset.gt_poses is None or not result.indices:
         return None
     return Trajectory(np.asarray(dataset.gt_poses)[result.indices], result.timestamps)
-
-
-class _OutputSinks:
-    """Per-frame consumers of frontend outputs: the static map and the moving objects."""
-
-    def __init__(self, config: PipelineConfig):
-        out = config.output
-        self.map = (
-            StaticMapBuilder(out.map_voxel_size, out.map_points_per_frame) if out.static_map else None
-        )
-        self.objects = MovingObjectsLog()
-
-    def on_output(self, frame, output) -> None:
-        if self.map is not None:
-            self.map.on_output(frame, output)
-        self.objects.on_output(frame, output)
-
-    def write(self, run_dir: Path, result: RunResult) -> None:
-        """``static_map.ply`` and (if any object was seen) ``moving_objects.csv``, with the
-        final (optimised) poses of the processed scans."""
-        if not result.indices:
-            return
-        if self.map is not None:
-            write_atomic(run_dir / "static_map.ply", lambda tmp: self.map.write(tmp, result.poses, result.indices))
-        if self.objects.objects:
-            write_atomic(run_dir / "moving_objects.csv",
-                         lambda tmp: self.objects.write_csv(tmp, result.poses, result.indices))
 
 
 OPTION_SECTIONS = {"ssf.network.weights": ("ssf", "--weights")}
@@ -149,20 +117,14 @@ def run_sequence(
     """
     dataset = open_dataset(path, config.dataset)
     frames = _frames_to_process(path, dataset, config)
-    frontend = frontend or make_frontend(config.frontend, config)
-    backend = make_backend(config.backend, config)
-    check_requested_options(config, frontend, backend, requested)
+    slam = Slam(config, frontend=frontend)
+    check_requested_options(config, slam.frontend, slam.backend, requested)
     timestamped = run_dir is None
     run_dir = _make_run_dir(path, config, tag, run_dir)
     log.info("%s -> %s", dataset.describe(), run_dir)
-    sinks = _OutputSinks(config)
     if on_start is not None:
         on_start(len(frames))
-    loop_closer = make_loop_closer(config.loop_closure) if getattr(backend, "accepts_loops", False) else None
-    result = run_pipeline(
-        dataset, frontend, backend, frames, on_frame,
-        loop_closer=loop_closer, on_output=sinks.on_output,
-    )
+    result = drive(slam, dataset, frames, on_frame)
     with deferred_signals():
         gt = _ground_truth(dataset, result)
         metrics = None
@@ -170,38 +132,9 @@ def run_sequence(
             from flowslam.evaluation import evaluate
 
             metrics = evaluate(result.trajectory, gt)
-        write_results(run_dir, result, config, gt, metrics)
-        sinks.write(run_dir, result)
-        write_json(run_dir / "run.json", _run_info(path, dataset, config, frames, result, backend, loop_closer))
+        run_info = {"sequence": str(path), "dataset": dataset.describe(), "frontend": config.frontend,
+                    "backend": config.backend, "frames_requested": len(frames)}
+        slam.save(run_dir, gt=gt, metrics=metrics, run_info=run_info)
         if timestamped:
             link_latest(run_dir)
     return RunOutcome(run_dir, result, metrics, dataset.describe())
-
-
-def _run_info(path, dataset, config: PipelineConfig, frames: range, result: RunResult, backend, loop_closer) -> dict:
-    """``run.json``: what was asked, what happened (frames, speed, why it stopped)."""
-    return {
-        "flowslam_version": __version__,
-        "python": platform.python_version(),
-        "sequence": str(path),
-        "dataset": dataset.describe(),
-        "frontend": config.frontend,
-        "backend": config.backend,
-        "loop_closure": loop_closer is not None,
-        "frames_requested": len(frames),
-        "frames_processed": len(result.indices),
-        "first_index": result.indices[0] if result.indices else None,
-        "complete": result.error is None,
-        "frames_per_second": result.frames_per_second,
-        "median_ms_per_frame": float(np.median(result.seconds_per_frame) * 1e3)
-        if result.seconds_per_frame else None,
-        "error": None if result.error is None else describe_stop(result.error),
-        "failed_index": result.failed_index,
-        "fallbacks": summarize_fallbacks(result.frontend_stats),
-        "loop_closures": len(result.loops),
-        "loops": [
-            dict(i=lc.i, j=lc.j, fitness=lc.fitness, rmse_m=lc.inlier_rmse, **lc.info)
-            for lc in result.loops
-        ],
-        "backend_stats": getattr(backend, "stats", None),
-    }

@@ -5,20 +5,99 @@ File formats
 - KITTI: one pose per line, 12 numbers = the first three rows of the 4x4
   ``T_world_sensor`` in row-major order. No timestamps (index = frame).
 - TUM: ``timestamp tx ty tz qx qy qz qw`` per line (seconds, metres, Hamilton
-  quaternion with w last). Lines starting with ``#`` are comments.
+  quaternion with w last). Lines starting with ``#`` are comments. Timestamps must
+  increase strictly (``checked_timestamps``).
+
+Every malformed file raises ``InputError`` naming the file and the problem in one line.
+
+Also here: ``checked_timestamps``, the one check (and optional repair) of "timestamps
+increase strictly" that every dataset reader applies to its scan times.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
 from flowslam import geometry
 from flowslam.errors import InputError
 
-__all__ = ["Trajectory", "read_trajectory", "write_tum", "write_kitti", "detect_format"]
+__all__ = ["Trajectory", "read_trajectory", "write_tum", "write_kitti", "detect_format", "checked_timestamps",
+           "unit_quaternions"]
+
+log = logging.getLogger(__name__)
+
+FIX_TIMES_HINT = "--fix-times (dataset.fix_times: true) repairs them"
+"""What the timestamp error of a dataset reader suggests."""
+
+
+def _show(value) -> str:
+    return str(int(value)) if np.issubdtype(np.asarray(value).dtype, np.integer) else repr(float(value))
+
+
+def checked_timestamps(
+    times: np.ndarray,
+    where: str | Path,
+    *,
+    fix: bool = False,
+    what: str = "timestamps (s)",
+    names: Sequence[str] | None = None,
+    hint: str = FIX_TIMES_HINT,
+) -> np.ndarray:
+    """``times`` (N,) if they increase strictly, else ``InputError`` or (``fix``) a repaired copy.
+
+    The error names ``where``, the first offending index ``i`` and the values
+    ``times[i-1]``, ``times[i]`` (and ``names[i-1]``, ``names[i]`` when given, e.g. the
+    scan files the times come from); ``hint`` is appended. With ``fix`` each time that is
+    not after the (repaired) previous one becomes the previous + the median positive
+    interval, or the midpoint to the next good time when that is closer (so one bad
+    time does not shift all later ones); one warning line says how many changed.
+    Works in the array's own units and dtype (seconds as float, or integer
+    nanoseconds, which float64 cannot hold exactly).
+    """
+    times = np.asarray(times)
+    diffs = np.diff(times)
+    bad = np.flatnonzero(~(diffs > 0))  # NaN differences count as bad too
+    if bad.size == 0:
+        return times
+    i = int(bad[0]) + 1
+    files = f" ({names[i - 1]}, {names[i]})" if names is not None else ""
+    problem = (f"{what} must increase strictly: #{i} = {_show(times[i])} is not after "
+               f"#{i - 1} = {_show(times[i - 1])}{files}")
+    positive = diffs[diffs > 0]
+    if not fix or positive.size == 0:
+        reason = "; cannot repair: no positive interval" if fix else (f"; {hint}" if hint else "")
+        raise InputError(where, problem + reason)
+    step = np.median(positive).astype(times.dtype) if times.dtype.kind in "iu" else np.median(positive)
+    fixed = _repair_times(times, step)
+    changed = int(np.count_nonzero(fixed != times))
+    log.warning("%s: %s; fix_times replaced %d of %d by the previous + the median interval %s "
+                "(or the midpoint to the next good time)", where, problem, changed, len(times),
+                _show(step) if times.dtype.kind in "iu" else f"{step:.6g}")
+    return fixed
+
+
+def _repair_times(times: np.ndarray, step) -> np.ndarray:
+    """``checked_timestamps``'s repair: one forward pass, the next good time found by a moving index."""
+    fixed = times.copy()
+    n, j = len(times), 1
+    for k in range(1, n):
+        prev = fixed[k - 1]
+        if fixed[k] > prev:
+            continue
+        j = max(j, k + 1)
+        while j < n and not times[j] > prev:
+            j += 1
+        value = prev + step
+        if j < n:
+            mid = prev + (times[j] - prev) // 2 if times.dtype.kind in "iu" else prev + (times[j] - prev) / 2
+            value = min(value, mid) if mid > prev else value
+        fixed[k] = value
+    return fixed
 
 
 @dataclass
@@ -94,8 +173,15 @@ def detect_format(path: str | Path, table: np.ndarray | None = None) -> str:
     raise InputError(path, f"poses file has {ncol} columns; expected 12 (KITTI) or 8 (TUM)")
 
 
-def read_trajectory(path: str | Path, fmt: str | None = None) -> Trajectory:
-    """Read a KITTI or TUM trajectory file (format guessed from the column count)."""
+def read_trajectory(path: str | Path, fmt: str | None = None, *, fix_times: bool = False) -> Trajectory:
+    """Read a KITTI or TUM trajectory file (format guessed from the column count).
+
+    Poses are ``T_world_sensor`` (metres), TUM timestamps seconds. Raises ``InputError``
+    (one line naming the file) for a missing/unreadable/empty file, rows of different
+    lengths, non-numeric or non-finite values, a wrong column count, a zero quaternion,
+    a pose that is not a rigid transform, or TUM timestamps that do not increase
+    strictly (repaired instead with ``fix_times``, see ``checked_timestamps``).
+    """
     path = Path(path)
     table = _load_table(path)
     fmt = fmt or detect_format(path, table)
@@ -108,17 +194,28 @@ def read_trajectory(path: str | Path, fmt: str | None = None) -> Trajectory:
     elif fmt == "tum":
         if table.shape[1] != 8:
             raise InputError(path, f"TUM poses need 8 numbers per line, found {table.shape[1]}")
-        q = table[:, 4:8]
-        norms = np.linalg.norm(q, axis=1)
-        if np.any(norms < 1e-9):
-            raise InputError(path, "TUM poses file has a zero quaternion")
-        traj = Trajectory(geometry.from_quat_xyzw(q / norms[:, None], table[:, 1:4]), table[:, 0])
+        stamps = checked_timestamps(table[:, 0], path, fix=fix_times, hint="")
+        traj = Trajectory(geometry.from_quat_xyzw(unit_quaternions(table[:, 4:8], path, "TUM poses file"), table[:, 1:4]), stamps)
     else:
         raise InputError(path, f"unknown trajectory format {fmt!r} (use 'kitti' or 'tum')")
     bad = [i for i, T in enumerate(traj.poses) if not geometry.is_se3(T, tol=1e-4)]
     if bad:
         raise InputError(path, f"pose on line {bad[0] + 1} is not a rigid transform")
     return traj
+
+
+def unit_quaternions(q: np.ndarray, where: str | Path, what: str = "poses file") -> np.ndarray:
+    """Normalised (N,4) quaternions (any component order). Each is scaled by its largest
+    component first, so that huge values (1e300) do not overflow to a zero quaternion;
+    ``InputError`` naming ``where`` for a zero or non-finite one."""
+    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
+    scale = np.abs(q).max(axis=1) if len(q) else np.zeros(0)
+    bad = ~(scale >= 1e-9) | ~np.isfinite(scale)
+    if np.any(bad):
+        k = int(np.argmax(bad))
+        raise InputError(where, f"{what} has a zero quaternion (or a non-finite one) on pose {k}")
+    q = q / scale[:, None]
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def write_kitti(path: str | Path, traj: Trajectory | np.ndarray) -> None:

@@ -25,7 +25,7 @@ def test_run_writes_every_output(kitti_run):
     assert latest.is_symlink() and latest.resolve().parent == out.resolve()
     for name in ["trajectory_tum.txt", "trajectory_kitti.txt", "odometry_tum.txt", "gt_tum.txt",
                  "gt_kitti.txt", "config.yaml", "metrics.json", "run.json", "trajectory_topview.png",
-                 "static_map.ply"]:
+                 "static_map.ply", "static_map.pcd"]:
         assert (latest / name).is_file(), name
     assert (latest / "trajectory_topview.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     run = json.loads((latest / "run.json").read_text())

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from flowslam import geometry
 from flowslam.interfaces import FrontendOutput
-from flowslam.mapping import StaticMapBuilder, poses_by_index, voxel_downsample, write_ply
+from flowslam.mapping import MapCloud, StaticMapBuilder, poses_by_index, voxel_downsample, write_point_cloud
 
 from test_flow_odometry import street_scene
 from test_ground_truth_frontends import synthetic_sequence
@@ -89,11 +89,14 @@ def test_memory_bound_and_storage_precision():
 def test_ply_round_trip_with_open3d(tmp_path: Path):
     o3d = pytest.importorskip("open3d")
     pts = np.random.default_rng(4).uniform(-100, 100, (1234, 3))
-    path = write_ply(tmp_path / "sub" / "static_map.ply", pts)
-    cloud = o3d.io.read_point_cloud(str(path))
-    np.testing.assert_allclose(np.asarray(cloud.points), pts.astype(np.float32), rtol=0, atol=0)
-    empty = write_ply(tmp_path / "empty.ply", np.zeros((0, 3)))
-    assert len(o3d.io.read_point_cloud(str(empty)).points) == 0
+    cloud = MapCloud(pts, np.linspace(0.0, 1.0, len(pts), dtype=np.float32))
+    path = write_point_cloud(tmp_path / "static_map.ply", cloud)
+    legacy = o3d.io.read_point_cloud(str(path))  # the legacy reader takes it too (x y z)
+    np.testing.assert_allclose(np.asarray(legacy.points), pts.astype(np.float32), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="no points"):
+        write_point_cloud(tmp_path / "empty.ply", MapCloud(np.zeros((0, 3)), np.zeros(0, np.float32)))
+    with pytest.raises(ValueError, match=".ply or .pcd"):
+        write_point_cloud(tmp_path / "map.xyz", cloud)
 
 
 def test_on_output_adapter_per_point_frontend(tmp_path: Path):

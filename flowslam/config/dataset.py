@@ -28,3 +28,7 @@ class DatasetConfig(StrictModel):
     """Index of the first scan processed."""
     max_frames: int | None = Field(None, ge=1)
     """Process at most this many scans (None: to the end)."""
+    max_coordinate_m: float = Field(1000.0, gt=0)
+    """Plausible range (m): points with |x|, |y| or |z| beyond it (sensor frame) are dropped like NaN points and counted; a scan left with too few points is an input error."""
+    fix_times: bool = False
+    """Repair scan timestamps that do not increase strictly (each becomes the previous + the median interval, with a warning) instead of stopping with an error."""

@@ -11,10 +11,10 @@ class OutputConfig(StrictModel):
     """Optional outputs of a run folder."""
 
     static_map: bool = True
-    """Write ``static_map.ply`` (points marked dynamic removed, optimised poses)."""
+    """Write ``static_map.ply`` / ``.pcd`` and ``dynamic_points.ply`` (points marked dynamic removed, optimised poses)."""
     map_voxel_size: float = Field(0.2, gt=0)
     """Voxel size (m) of the static map."""
     map_points_per_frame: int = Field(10000, ge=1)
-    """Points kept per scan for the map (memory: ~60 kB per scan)."""
+    """Points kept per scan for the map (memory: ~80 kB per scan)."""
     plot: bool = True
     """Write ``trajectory_topview.png`` (estimate vs GT from above, loops in red)."""
