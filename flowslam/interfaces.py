@@ -49,6 +49,8 @@ class Frontend(Protocol):
     """Estimates the motion between consecutive scans (and per-point outputs if it can)."""
 
     name: str
+    # Optional: ``config_sections`` (tuple of str), the config sections the frontend
+    # reads; ``flowslam run`` refuses a command-line option of another section.
 
     def process(self, frame: Frame) -> FrontendOutput:
         """Consume the next scan in order; return the relative motion to the previous one."""

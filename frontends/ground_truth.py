@@ -41,6 +41,9 @@ NO_FLOW_MESSAGE = (
 class GroundTruthFlowFrontend:
     """``gt`` (``use_labels=True``) or ``gt-flow`` (``use_labels=False``), see module doc."""
 
+    config_sections = ("flow_odometry",)
+    """The config sections it reads (an option of another section given on the command line is an error)."""
+
     def __init__(self, use_labels: bool, options: FlowOdometryConfig | None = None):
         self.use_labels = use_labels
         self.name = "gt" if use_labels else "gt-flow"

@@ -21,6 +21,8 @@ class KissIcpFrontend:
     """Wraps ``kiss_icp.kiss_icp.KissICP``; one instance per sequence (it keeps a map)."""
 
     name = "kiss-icp"
+    config_sections = ("kiss_icp",)
+    """The config sections it reads (an option of another section given on the command line is an error)."""
 
     def __init__(self, options: KissIcpConfig | None = None):
         from kiss_icp.config import load_config as load_kiss_config

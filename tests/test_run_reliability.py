@@ -255,3 +255,15 @@ def test_simulate_into_an_impossible_folder(tmp_path):
     proc = flowslam("simulate", blocker / "seq", "-n", "2", "--no-progress")
     assert_one_line_error(proc, str(blocker / "seq"), "Not a directory")
     assert_one_line_error(flowslam("simulate", blocker, "-n", "2", "--no-progress"), str(blocker), "not a folder")
+
+
+def test_weights_are_taken_by_the_frontends_with_a_network(seq, tmp_path):
+    from flowslam.run import check_requested_options
+    from flowslam.registry import make_backend, make_frontend
+
+    for name in ["ssf", "sf", "gt-seg", "gt-flow+ssf-seg"]:
+        cfg = load_config(frontend=name)
+        check_requested_options(cfg, make_frontend(name, cfg), make_backend("odometry", cfg), ["ssf.network.weights"])
+    cfg = load_config(frontend="gt")
+    with pytest.raises(InputError, match="'gt' does not use it .it reads flow_odometry"):
+        check_requested_options(cfg, make_frontend("gt", cfg), make_backend("odometry", cfg), ["ssf.network.weights"])
