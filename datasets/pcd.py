@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flowslam.datasets.scan_files import read_file_bytes
 from flowslam.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -123,12 +124,7 @@ def read_pcd(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     truncated or inconsistent file.
     """
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError(path, "file does not exist") from None
-    except OSError as e:
-        raise InputError(path, f"cannot read file ({e.strerror or e})") from None
+    raw = read_file_bytes(path)
     hdr = parse_pcd_header(raw, path)
     missing = [k for k in "xyz" if k not in hdr.fields]
     if missing:

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from flowslam.datasets.pcd import INTENSITY_FIELDS
+from flowslam.datasets.scan_files import read_file_bytes
 from flowslam.errors import InputError
 
 _TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
@@ -81,12 +82,7 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Read a .ply file -> ``(points (N,3) float64 m, intensity (N,) float64 | None)``, N = the
     ``vertex`` count of the header (module doc)."""
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError(path, "file does not exist") from None
-    except OSError as e:
-        raise InputError(path, f"cannot read file ({e.strerror or e})") from None
+    raw = read_file_bytes(path)
     hdr = parse_ply_header(raw, path)
     k = next((i for i, e in enumerate(hdr.elements) if e.name == "vertex"), None)
     if k is None:

@@ -39,7 +39,8 @@ def natural_key(path: str | Path) -> list:
     return [(0, int(tok), "") if tok.isdigit() else (1, 0, tok.lower()) for tok in re.split(r"(\d+)", name) if tok]
 
 
-def _read_bytes(path: Path) -> bytes:
+def read_file_bytes(path: Path) -> bytes:
+    """The whole file; a missing or unreadable file is an ``InputError`` naming it."""
     try:
         return path.read_bytes()
     except FileNotFoundError:
@@ -55,7 +56,7 @@ def read_kitti_bin(path: str | Path) -> ScanArrays:
     A size that is not a multiple of 16 bytes raises ``InputError`` (truncated file).
     """
     path = Path(path)
-    raw = _read_bytes(path)
+    raw = read_file_bytes(path)
     if len(raw) % 16:
         raise InputError(
             path, f"size {len(raw)} bytes is not a multiple of 16 (4 float32 per point; truncated .bin?)"

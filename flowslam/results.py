@@ -70,6 +70,17 @@ def create_results_dir(output_dir: str | Path, tag: str) -> Path:
     raise AssertionError("unreachable")  # pragma: no cover
 
 
+def make_results_folder(path: str | Path) -> Path:
+    """``path`` as a folder (made with its parents if missing); one that cannot be made is
+    an ``InputError`` naming it."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(path, f"cannot create the results folder ({_reason(e)})") from None
+    return path
+
+
 def link_latest(run_dir: Path) -> None:
     """Point ``<output_dir>/latest`` at ``run_dir`` (atomically: a new link renamed over
     the old one). Called only once ``run_dir`` holds its ``run.json``."""

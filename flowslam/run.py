@@ -21,7 +21,7 @@ from flowslam.datasets import frame_range, open_dataset
 from flowslam.errors import InputError
 from flowslam.interfaces import Frontend
 from flowslam.pipeline import RunResult, drive
-from flowslam.results import create_results_dir, link_latest
+from flowslam.results import create_results_dir, link_latest, make_results_folder
 from flowslam.signals import deferred_signals
 from flowslam.slam import Slam
 from flowslam.trajectory import Trajectory
@@ -80,12 +80,7 @@ def _frames_to_process(path, dataset, config: PipelineConfig) -> range:
 def _make_run_dir(path, config: PipelineConfig, tag: str | None, run_dir: Path | None) -> Path:
     if run_dir is None:
         return create_results_dir(config.output_dir, tag or f"{Path(path).name}_{config.frontend}_{config.backend}")
-    run_dir = Path(run_dir)
-    try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise InputError(run_dir, f"cannot create the results folder ({e.strerror or e})") from None
-    return run_dir
+    return make_results_folder(run_dir)
 
 
 def run_sequence(

@@ -36,9 +36,7 @@ def _in_main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
-def _raise_for(signum: int, _frame=None):
-    if signum == signal.SIGINT:
-        raise KeyboardInterrupt
+def _raise_terminated(signum: int, _frame=None):
     raise Terminated(signum)
 
 
@@ -48,7 +46,7 @@ def terminate_as_interrupt() -> Iterator[None]:
     if not _in_main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGTERM, _raise_for)
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         yield
     finally:

@@ -153,8 +153,7 @@ class Slam:
             if out.static_map:
                 self.map = StaticMapBuilder(out.map_voxel_size, out.map_points_per_frame)
             self.objects = MovingObjectsLog()
-        self.listeners = [l for l in (self.map, self.objects) if l is not None]
-        self.listeners = [l.on_output for l in self.listeners] + list(listeners)
+        self.listeners = [sink.on_output for sink in (self.map, self.objects) if sink is not None] + list(listeners)
         self._result = RunResult()
 
     # -- input ---------------------------------------------------------------------------
@@ -231,13 +230,9 @@ class Slam:
         """Write a results folder (the files of ``flowslam run``; README) into
         ``results_dir`` (created if missing): every file atomically, ``run.json`` last.
         ``run_info`` adds to what ``run.json`` says."""
-        from flowslam.results import write_atomic, write_json, write_results
+        from flowslam.results import make_results_folder, write_atomic, write_json, write_results
 
-        results_dir = Path(results_dir)
-        try:
-            results_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise InputError(results_dir, f"cannot create the results folder ({e.strerror or e})") from None
+        results_dir = make_results_folder(results_dir)
         result = self.result()
         written = write_results(results_dir, result, self.config, gt, metrics)
         if result.indices and getattr(self.backend, "exports_graph", False):

@@ -192,7 +192,6 @@ def test_a_signal_while_writing_waits_for_run_json(seq, tmp_path, monkeypatch):
         return real_write(self, path, *args)
 
     monkeypatch.setattr(StaticMapBuilder, "write", write_after_ctrl_c)
-    monkeypatch.setattr(signal, "_flowslam_test", None, raising=False)
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # background jobs start with SIGINT ignored
     cfg = load_config(output_dir=str(tmp_path / "r"))
     try:
