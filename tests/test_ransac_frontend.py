@@ -66,7 +66,10 @@ def test_ransac_and_icp_refine_recover_consecutive_kitti_motions(kitti, features
         fine = refined.register(features[k], features[k - 1])
         assert coarse.code is None and fine.code is None, (coarse.reason, fine.reason)
         assert coarse.stats["fitness"] > 0.85
-        assert fine.stats["fitness"] == coarse.stats["fitness"]  # same seed, same RANSAC
+        # icp_refine reports RANSAC's fitness as ``fitness`` and ICP's apart; the two calls
+        # are separate RANSAC runs, and Open3D's parallel RANSAC is not bit-repeatable even
+        # with the same seed (0.962 vs 0.956 seen on these pairs), hence the tolerance
+        assert fine.stats["fitness"] == pytest.approx(coarse.stats["fitness"], abs=0.02)
         assert set(fine.stats["stage_ms"]) == {"ransac", "icp"}
         for r in (coarse, fine):
             _assert_covariance(r.covariance)
