@@ -56,6 +56,19 @@ class ConstantVelocityPredictor:
         self.dt = dt if dt is not None and dt > 0 else None
         self.misses = 0
 
+    def snapshot(self) -> dict:
+        """The predictor's state (a copy), for :meth:`restore`: a caller that registers a
+        pair twice (motion-fault recovery) keeps the state of the solution it keeps."""
+        return dict(T_prev_curr=self.T_prev_curr, covariance=self.covariance, dt=self.dt, misses=self.misses,
+                    fallbacks=Counter(self.fallbacks))
+
+    def restore(self, snapshot: dict) -> None:
+        """Go back to a state of :meth:`snapshot` (arrays are replaced on update, never
+        changed in place, so sharing them is safe)."""
+        self.T_prev_curr, self.covariance, self.dt = snapshot["T_prev_curr"], snapshot["covariance"], snapshot["dt"]
+        self.misses = snapshot["misses"]
+        self.fallbacks = Counter(snapshot["fallbacks"])
+
     def predict(self, dt: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(T_prev_curr, covariance) of the next scan pair; counts one more miss."""
         cfg = self.config

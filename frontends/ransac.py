@@ -8,6 +8,9 @@ refinement (``icp_refine``) is off by default.
 
 Per scan ``k``
 --------------
+Steps 1-3 are :class:`flowslam.registration.global_registration.FpfhRansac` (shared with
+the motion-fault recovery of ``ssf``); this module adds the covariance and the fallbacks.
+
 1. **Features** (once per scan): points beyond ``max_range_m`` dropped, voxel
    downsampling (``voxel_size_m``), normals (radius 2 x voxel), FPFH (radius 5 x voxel).
    The downsampled cloud and its features are kept as the next scan's target.
@@ -103,21 +106,9 @@ from flowslam.frame import Frame
 from flowslam.interfaces import FrontendOutput
 from flowslam.motion_model import ConstantVelocityPredictor
 from flowslam.registration.covariance import covariance_from_residuals
+from flowslam.registration.global_registration import FpfhRansac, ScanFeatures
 
 __all__ = ["PairRegistration", "RansacFrontend", "ScanFeatures", "make_frontend"]
-
-
-@dataclass
-class ScanFeatures:
-    """A scan as RANSAC sees it: downsampled cloud (with normals) and its FPFH features."""
-
-    cloud: object
-    """``open3d.geometry.PointCloud`` (sensor frame of the scan, m), with normals."""
-    features: object | None
-    """``open3d.pipelines.registration.Feature`` (33 x N), None when too few points."""
-    points: np.ndarray
-    """(N,3) float64 array of the cloud's points."""
-    timestamp: float
 
 
 @dataclass
@@ -149,36 +140,21 @@ class RansacFrontend:
         """``fallback``: the constant-velocity model's options (``flow_odometry`` section)."""
         self.options = options or RansacConfig()
         self.predictor = ConstantVelocityPredictor(fallback or FlowOdometryConfig())
+        self.global_registration = FpfhRansac(self.options)
+        """Features and alignment (shared with the motion-fault recovery of ``ssf``)."""
         self._prev: ScanFeatures | None = None
-        voxel = self.options.voxel_size_m
-        self.normal_radius_m = self.options.normal_radius_m or 2.0 * voxel
-        self.fpfh_radius_m = self.options.fpfh_radius_m or 5.0 * voxel
-        self.distance_m = self.options.max_correspondence_distance_m or 1.5 * voxel
-        self.icp_distance_m = self.options.icp_distance_m or 0.4 * voxel
+        g = self.global_registration
+        self.normal_radius_m, self.fpfh_radius_m = g.normal_radius_m, g.fpfh_radius_m
+        self.distance_m, self.icp_distance_m = g.distance_m, g.icp_distance_m
 
     @property
     def fallbacks(self) -> Counter[str]:
         """Fallbacks so far, by code (see :data:`flowslam.fallbacks.FALLBACK_CODES`)."""
         return self.predictor.fallbacks
 
-    # -- features ----------------------------------------------------------------
-
     def features(self, points: np.ndarray, timestamp: float = 0.0) -> ScanFeatures:
         """Crop, downsample, normals and FPFH of one scan ((N,3) points, sensor frame, m)."""
-        import open3d as o3d
-
-        c = self.options
-        p = np.asarray(points, dtype=np.float64)
-        p = p[np.einsum("ij,ij->i", p, p) < c.max_range_m**2]
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p)).voxel_down_sample(c.voxel_size_m)
-        down = np.asarray(cloud.points)
-        if len(down) < c.min_points:
-            return ScanFeatures(cloud, None, down, timestamp)
-        search = o3d.geometry.KDTreeSearchParamHybrid
-        cloud.estimate_normals(search(radius=self.normal_radius_m, max_nn=c.normal_max_nn))
-        fpfh = o3d.pipelines.registration.compute_fpfh_feature(
-            cloud, search(radius=self.fpfh_radius_m, max_nn=c.fpfh_max_nn))
-        return ScanFeatures(cloud, fpfh, down, timestamp)
+        return self.global_registration.features(points, timestamp)
 
     # -- registration ------------------------------------------------------------
 
@@ -186,14 +162,15 @@ class RansacFrontend:
         """RANSAC (and ICP) of ``source`` onto ``target`` with the covariance recipe of the
         module doc; ``code`` says why it failed (then ``T_target_source`` is not to be used)."""
         c = self.options
-        laps: dict = {}
-        stats: dict = {"points": len(source.points), "target_points": len(target.points), "stage_ms": laps}
+        stats: dict = {"points": len(source.points), "target_points": len(target.points), "stage_ms": {}}
         if source.features is None or target.features is None:
             return PairRegistration(np.eye(4), None, stats, "few_points", (
                 f"fewer than {c.min_points} downsampled points (scan k: {len(source.points)}, "
                 f"scan k-1: {len(target.points)})"))
-        T, pairs, n_eff = self._align(source, target, stats, laps)
-        fitness = stats["fitness"]
+        aligned = self.global_registration.align(source, target)
+        stats.update(aligned.stats, stage_ms=aligned.laps)
+        T, pairs, fitness = aligned.T_target_source, aligned.pairs, aligned.stats["fitness"]
+        n_eff = c.icp_effective_samples if aligned.refined else c.effective_samples
         if fitness < c.min_fitness or len(pairs) < c.min_inliers:
             return PairRegistration(T, None, stats, "few_inliers", (
                 f"RANSAC fitness {fitness:.3f} (min {c.min_fitness}), {len(pairs)} aligned pairs "
@@ -207,39 +184,6 @@ class RansacFrontend:
             cov = cov * (c.good_fitness / fitness) ** 2
         cov = cov + geometry.pose_covariance(np.deg2rad(c.min_rotation_std_deg), c.min_translation_std_m)
         return PairRegistration(T, cov, stats)
-
-    def _align(self, source: ScanFeatures, target: ScanFeatures, stats: dict, laps: dict):
-        """Open3D's RANSAC (and ICP): ``(T_target_source, pairs (M,2) [source, target], n_eff)``."""
-        import open3d as o3d
-
-        c = self.options
-        reg = o3d.pipelines.registration
-        checkers = []
-        if c.edge_length_similarity > 0:
-            checkers.append(reg.CorrespondenceCheckerBasedOnEdgeLength(c.edge_length_similarity))
-        if c.distance_check:
-            checkers.append(reg.CorrespondenceCheckerBasedOnDistance(self.distance_m))
-        start = time.perf_counter()
-        o3d.utility.random.seed(c.seed)
-        result = reg.registration_ransac_based_on_feature_matching(
-            source.cloud, target.cloud, source.features, target.features, c.mutual_filter, self.distance_m,
-            reg.TransformationEstimationPointToPoint(False), c.ransac_n, checkers,
-            reg.RANSACConvergenceCriteria(c.max_iterations, c.confidence))
-        laps["ransac"] = _millis(start)
-        T = np.array(result.transformation, dtype=np.float64)
-        pairs = np.asarray(result.correspondence_set, dtype=np.int64).reshape(-1, 2)
-        stats.update(fitness=float(result.fitness), inlier_rmse_m=float(result.inlier_rmse),
-                     correspondences=len(pairs), inliers=len(pairs))
-        if not c.icp_refine or len(pairs) < c.min_inliers:
-            return T, pairs, c.effective_samples
-        start = time.perf_counter()
-        icp = reg.registration_icp(
-            source.cloud, target.cloud, self.icp_distance_m, T, reg.TransformationEstimationPointToPlane(),
-            reg.ICPConvergenceCriteria(max_iteration=c.icp_max_iterations))
-        laps["icp"] = _millis(start)
-        icp_pairs = np.asarray(icp.correspondence_set, dtype=np.int64).reshape(-1, 2)
-        stats.update(icp_fitness=float(icp.fitness), icp_rmse_m=float(icp.inlier_rmse), inliers=len(icp_pairs))
-        return np.array(icp.transformation, dtype=np.float64), icp_pairs, c.icp_effective_samples
 
     # -- the frontend ------------------------------------------------------------
 

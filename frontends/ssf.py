@@ -19,7 +19,14 @@ Per scan ``k`` (k >= 1) a chain of stages runs on the pair (k-1, k)
 4. ``flow_to_pose``: ``FlowToPose`` (``flow_odometry:``) registers the snapped static
    pairs (or, without an accepted refinement, the network's static flow) into the
    odometry measurement ``T_prev_curr`` and its covariance.
-5. ``objects`` (``ssf.objects.enabled``, on by default; needs an accepted refinement):
+5. ``recovery`` (with ``refine``; ``ssf.recovery``): the step is checked for a motion
+   fault from its own evidence (a fallback, a rejected refinement, a drop in the
+   refinement's fitness or a jump in the dynamic share against the last good steps, a
+   large disagreement with the constant-velocity prior; no ground truth). A faulty step
+   is re-initialised globally (FPFH + RANSAC of scan k onto scan k-1), stages 1-4 run
+   again from that start, and the solution that explains more of scan k is kept
+   (``docs/motion_recovery.md``). Only the check runs on a good step.
+6. ``objects`` (``ssf.objects.enabled``, on by default; needs an accepted refinement):
    candidate moving points (network dynamic, the last pair's movers carried on at
    constant velocity, geometric movers seen through in scan k's range image) are
    clustered and each object is registered to scan ``k`` by rigid ICP; its points get
@@ -28,7 +35,8 @@ Per scan ``k`` (k >= 1) a chain of stages runs on the pair (k-1, k)
    measurement instead (``static_flow``).
 
 Per-point outputs (flow, static mask, instance ids) refer to scan ``k-1``, as the
-interface says; ``stats["stage_ms"]`` holds each stage's wall time.
+interface says; ``stats["stage_ms"]`` holds each stage's wall time, ``stats["recovery"]``
+the motion-fault check (counted in run.json's ``fallbacks`` entry).
 """
 
 from __future__ import annotations
@@ -40,7 +48,7 @@ import numpy as np
 
 from flowslam.config import FlowOdometryConfig, PipelineConfig, SsfConfig
 from flowslam.frame import Frame
-from flowslam.frontends.ssf_stages import NetworkStage, PairState, Stage, build_stages
+from flowslam.frontends.ssf_stages import MotionRecoveryStage, NetworkStage, PairState, Stage, build_stages
 from flowslam.interfaces import FrontendOutput
 
 
@@ -59,6 +67,9 @@ class SsfFrontend:
         if stages is None:
             stages = build_stages(self.options, flow_odometry or FlowOdometryConfig())
         self.stages = stages
+        for i, stage in enumerate(stages):  # a retry re-runs this chain's stages before the recovery
+            if isinstance(stage, MotionRecoveryStage):
+                stage.attach(stages[:i])
         self.name = name or self.name
         network = next(s for s in self.stages if isinstance(s, NetworkStage))
         self.num_frames = network.num_frames

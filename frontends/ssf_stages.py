@@ -9,6 +9,7 @@ found) and has its own options section (``flowslam.config.ssf``) and its own ent
 ``pose_start``    ``FlowToPose`` on the network's static flow -> ``T_start`` (ICP start)
 ``refine``        static refinement against scan k -> snapped static pairs
 ``flow_to_pose``  the odometry measurement ``T_prev_curr`` + covariance
+``recovery``      motion-fault check; a faulty step re-initialised globally and re-run
 ``objects``       candidates -> objects -> per-point flow, dynamic label, instance
 ``static_flow``   (objects off) static points get the rigid flow of the measurement
 ================  ====================================================================
@@ -20,6 +21,7 @@ the points of scan k-1, Argoverse 2 convention (``p + flow`` in sensor frame k, 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -70,6 +72,21 @@ class PairState:
     @property
     def refinement_accepted(self) -> bool:
         return self.refined is not None and self.refined.accepted
+
+    @property
+    def T_prior(self) -> np.ndarray:
+        """The constant-velocity prior as ``T_prev_curr`` (scan k into frame k-1)."""
+        return geometry.inv(self.history_poses[-1]) @ self.T_world_guess
+
+    def retry(self, T_prev_curr: np.ndarray) -> PairState:
+        """The same pair with nothing found yet and ``T_prev_curr`` as the prior."""
+        return PairState(self.prev, self.frame, self.history, self.history_poses,
+                         T_world_guess=self.history_poses[-1] @ T_prev_curr)
+
+    def adopt(self, other: PairState) -> None:
+        """Take every finding of ``other`` (a retry of this pair), its stats included."""
+        for f in dataclasses.fields(self):
+            setattr(self, f.name, getattr(other, f.name))
 
 
 class Stage(Protocol):
@@ -170,13 +187,128 @@ class FlowToPoseStage:
 
     def __init__(self, flow_odometry: FlowOdometryConfig):
         self.flow_to_pose = FlowToPose(flow_odometry)
+        self._before: dict | None = None
 
     def run(self, state: PairState) -> None:
+        self._before = self.flow_to_pose.predictor.snapshot()
+        self._estimate(state)
+
+    def rerun(self, state: PairState) -> None:
+        """Measure the pair again (a retry): the motion model as it was before :meth:`run`."""
+        self.flow_to_pose.predictor.restore(self._before)
+        self._estimate(state)
+
+    def _estimate(self, state: PairState) -> None:
         if state.refinement_accepted:
             state.estimate = self.flow_to_pose.estimate(state.refined.points, state.refined.flow, dt=state.dt)
         else:
             state.estimate = self.flow_to_pose.estimate(state.prev.points, state.flow, static_mask=state.static,
                                                         dt=state.dt)
+
+
+class MotionRecoveryStage:
+    """Motion faults (``ssf.recovery``, :mod:`flowslam.registration.recovery`): every step is
+    checked from its own evidence (free: numbers the stages computed anyway); a faulty step
+    gets a global start (FPFH + RANSAC of scan k onto scan k-1), the ``redo`` stages and
+    ``flow_to_pose`` run again from it (the network sees the new prior too), and the
+    solution that explains more of scan k is kept (``AlignmentEvidence``), with the motion
+    models' state of that solution. ``stats["recovery"]``: ``faults`` (cues, empty when
+    good), ``outcome`` (None, ``recovered``, ``kept``, ``no_start``, ``off``), evidence
+    before/after, the global start's stats; ``summarize_fallbacks`` counts them."""
+
+    name = "recovery"
+
+    def __init__(self, config: SsfConfig, flow_to_pose: FlowToPoseStage):
+        from flowslam.config import RansacConfig
+        from flowslam.registration.global_registration import FpfhRansac
+        from flowslam.registration.recovery import MotionFaultDetector
+
+        self.options = config.recovery
+        self.detector = MotionFaultDetector(self.options)
+        self.redo: list[Stage] = []
+        """The stages a retry runs before ``flow_to_pose`` (:meth:`attach`)."""
+        self.flow_to_pose = flow_to_pose
+        self.registration = FpfhRansac(RansacConfig(**self.options.global_start.model_dump()))
+        self._features: dict[int, object] = {}  # scan index -> ScanFeatures (the last two)
+
+    def attach(self, chain_before: list[Stage]) -> None:
+        """The chain's stages before this one: a retry runs them again (all but
+        ``flow_to_pose``, which is re-run last from the motion model's state before the step)."""
+        self.redo = [s for s in chain_before if s is not self.flow_to_pose]
+
+    def run(self, state: PairState) -> None:
+        evidence = self._evidence(state)
+        record: dict = {"faults": self.detector.check(evidence), "outcome": None}
+        if not record["faults"]:
+            self.detector.remember(evidence)
+        elif not self.options.enabled:
+            record["outcome"] = "off"
+        else:
+            record.update(self._recover(state))
+            if record["outcome"] == "recovered":
+                self.detector.remember(self._evidence(state))
+        state.stats["recovery"] = record
+
+    @staticmethod
+    def _evidence(state: PairState):
+        from flowslam.registration.recovery import StepEvidence, prior_disagreement
+
+        rot, trans = prior_disagreement(state.T_prior, state.estimate.T_prev_curr)
+        refined = state.refined
+        return StepEvidence(
+            fallback=state.estimate.fallback,
+            refine_accepted=None if refined is None else refined.accepted,
+            refine_fitness=None if refined is None else refined.stats.get("refine_fitness"),
+            dynamic_share=None if state.static is None else float(np.mean(~state.static)),
+            prior_rotation_rad=rot, prior_translation_m=trans)
+
+    def _recover(self, state: PairState) -> dict:
+        from flowslam.registration.recovery import AlignmentEvidence, global_start
+
+        c = self.options
+        T_start, start_stats = global_start(self._scan_features(state.frame), self._scan_features(state.prev),
+                                            self.registration, c.global_start.min_fitness)
+        if T_start is None:
+            return {"outcome": "no_start", "global_start": start_stats}
+        evidence = AlignmentEvidence(state.frame.points, state.prev.points, c.evidence_voxel_m,
+                                     c.evidence_distance_m, c.evidence_max_range_m)
+        first_state = self._motion_models()
+        trial = state.retry(T_start)
+        for stage in self.redo:
+            stage.run(trial)
+        self.flow_to_pose.rerun(trial)
+        before, after = evidence(state.estimate.T_prev_curr), evidence(trial.estimate.T_prev_curr)
+        record = {"evidence_before": before, "evidence_after": after, "global_start": start_stats}
+        if self._better(after, before, trial.estimate.fallback, state.estimate.fallback):
+            state.adopt(trial)
+            return dict(record, outcome="recovered")
+        self._restore_motion_models(first_state)
+        return dict(record, outcome="kept")
+
+    def _better(self, after: float, before: float, after_fell_back: bool, before_fell_back: bool) -> bool:
+        """The retry wins with more evidence by ``min_gain``, or, as a measurement against a
+        prediction, with evidence not lower by ``min_gain``."""
+        gain = self.options.min_gain
+        if before_fell_back and not after_fell_back:
+            return after >= before - gain
+        return after > before + gain
+
+    def _scan_features(self, frame: Frame):
+        if frame.index not in self._features:
+            self._features = {k: v for k, v in self._features.items() if k >= frame.index - 1}
+            self._features[frame.index] = self.registration.features(frame.points, float(frame.timestamp))
+        return self._features[frame.index]
+
+    def _motion_models(self) -> list:
+        """The constant-velocity predictors of the redo stages and ``flow_to_pose``, with their state."""
+        stages = [*self.redo, self.flow_to_pose]
+        models = [s.flow_to_pose.predictor for s in stages if hasattr(s, "flow_to_pose")]
+        return [(m, m.snapshot()) for m in models]
+
+    @staticmethod
+    def _restore_motion_models(saved: list) -> None:
+        for model, snapshot in saved:
+            model.restore(snapshot)
 
 
 class ObjectsStage:
@@ -233,12 +365,17 @@ class RigidStaticFlowStage:
 
 def build_stages(config: SsfConfig, flow_odometry: FlowOdometryConfig) -> list[Stage]:
     """The stage chain for ``config`` (module doc): the network always; ``pose_start`` and
-    ``refine`` when ``refine.enabled``; ``flow_to_pose``; then ``objects`` (or
-    ``static_flow`` with ``objects.enabled: false``) when ``refine.enabled``."""
+    ``refine`` when ``refine.enabled``; ``flow_to_pose``; then, when ``refine.enabled``,
+    ``recovery`` (which re-runs the stages before it on a faulty step) and ``objects`` (or
+    ``static_flow`` with ``objects.enabled: false``)."""
     stages: list[Stage] = [NetworkStage(config)]
     if config.refine.enabled:
         stages += [PoseStartStage(config, flow_odometry), StaticRefinementStage(config)]
-    stages.append(FlowToPoseStage(flow_odometry))
+    flow_to_pose = FlowToPoseStage(flow_odometry)
+    stages.append(flow_to_pose)
     if config.refine.enabled:
+        recovery = MotionRecoveryStage(config, flow_to_pose)
+        recovery.attach(stages)
+        stages.append(recovery)
         stages.append(ObjectsStage(config) if config.objects.enabled else RigidStaticFlowStage())
     return stages

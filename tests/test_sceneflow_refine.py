@@ -178,7 +178,7 @@ def test_ssf_frontend_modes_give_consistent_outputs(sim_pair, options):
     stages = set(out.stats["stage_ms"])
     if options.get("refine", {}).get("enabled", True):
         assert out.stats["refine_accepted"]
-        assert stages == {"network", "pose_start", "refine", "flow_to_pose",
+        assert stages == {"network", "pose_start", "refine", "flow_to_pose", "recovery",
                           "objects" if options.get("objects", {}).get("enabled", True) else "static_flow"}
         T = geometry.inv(out.T_prev_curr)  # T_{k,k-1}
         static = out.static_mask

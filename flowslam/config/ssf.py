@@ -2,13 +2,15 @@
 
 The frontend is a chain of stages (``flowslam.frontends.ssf``)::
 
-    network -> pose_start -> refine (static refinement) -> flow_to_pose -> objects
+    network -> pose_start -> refine (static refinement) -> flow_to_pose -> recovery -> objects
 
 ``network`` always runs; ``refine.enabled: false`` keeps the network's flow as it is
-(then ``pose_start`` is not needed and ``objects`` cannot run: it verifies objects
-against the refined ego motion); ``objects.enabled: false`` gives the static points
-the rigid flow of the measurement and keeps the network's flow for the rest. The
-``flow_to_pose`` stage uses the run's ``flow_odometry:`` section.
+(then ``pose_start`` is not needed, and neither ``recovery`` nor ``objects`` can run:
+they check the step and verify objects against the refined ego motion);
+``objects.enabled: false`` gives the static points the rigid flow of the measurement
+and keeps the network's flow for the rest. The ``flow_to_pose`` stage uses the run's
+``flow_odometry:`` section. ``recovery`` checks every step for a motion fault and
+re-initialises a faulty one globally (``docs/motion_recovery.md``).
 
 Metres, seconds, radians except fields whose name says ``_deg``.
 """
@@ -168,6 +170,65 @@ class ObjectRefinementConfig(StrictModel):
     """Geometric movers added to the candidates."""
 
 
+class GlobalStartConfig(StrictModel):
+    """The global re-initialisation of a faulty step: FPFH + RANSAC (+ ICP) of scan k onto
+    scan k-1, no prior needed. The fields below replace the defaults of the ``ransac``
+    frontend's options (``ransac:``); the others (feature radii, checkers) keep those defaults."""
+
+    voxel_size_m: float = Field(0.5, gt=0)
+    """Voxel of the downsampled clouds that features, RANSAC and ICP work on."""
+    max_range_m: float = Field(80.0, gt=0)
+    """Points farther than this from the sensor are not used."""
+    max_iterations: int = Field(100000, ge=1)
+    """RANSAC hypotheses at most."""
+    confidence: float = Field(0.999, gt=0, le=1)
+    """RANSAC stops once it has found the best hypothesis with this probability."""
+    icp_refine: bool = True
+    """Refine the RANSAC pose by point-to-plane ICP before it becomes the new start."""
+    min_fitness: float = Field(0.3, ge=0, le=1)
+    """RANSAC fitness below this: no new start (the step keeps its first solution)."""
+
+
+class MotionRecoveryConfig(StrictModel):
+    """Motion faults: a step whose registration its own evidence does not support is
+    re-initialised globally, re-run from the new start, and the better-explained solution
+    kept. A step is faulty when any cue below fires (``fallback``: the measurement fell
+    back to constant velocity; ``refine_rejected``: the static refinement was rejected;
+    ``fitness_drop``, ``dynamic_jump``, ``prior_disagreement`` as their fields say)."""
+
+    enabled: bool = True
+    """False: faults are still detected and counted (run.json), nothing is re-run."""
+    fitness_drop: float = Field(0.8, ge=0, le=1)
+    """Cue ``fitness_drop``: the refinement's fitness is below this times the median fitness
+    of the last good steps."""
+    dynamic_jump: float = Field(3.0, ge=1)
+    """Cue ``dynamic_jump``: the network calls more of scan k-1 dynamic than this times the
+    median share of the last good steps (a wrong ego prior makes static structure look moving) ..."""
+    dynamic_share_floor: float = Field(0.05, ge=0, le=1)
+    """... and more than this share."""
+    history: int = Field(10, ge=1)
+    """Good steps whose fitness and dynamic share make the medians above."""
+    min_history: int = Field(3, ge=1)
+    """The relative cues wait for this many good steps."""
+    max_prior_rotation_deg: float = Field(10.0, gt=0)
+    """Cue ``prior_disagreement``: the measurement differs from the constant-velocity
+    prior by more than this rotation ..."""
+    max_prior_translation_m: float = Field(2.0, gt=0)
+    """... or by more than this translation."""
+    evidence_voxel_m: float = Field(0.3, gt=0)
+    """Evidence of a solution: share of scan k's points (voxel-downsampled by this, within
+    evidence_max_range_m) that land within evidence_distance_m of a scan k-1 point."""
+    evidence_distance_m: float = Field(0.3, gt=0)
+    """See evidence_voxel_m."""
+    evidence_max_range_m: float = Field(80.0, gt=0)
+    """See evidence_voxel_m."""
+    min_gain: float = Field(0.02, ge=0, le=1)
+    """The re-initialised solution replaces the first when its evidence is higher by this
+    (or, when only the first fell back to constant velocity, not lower by this)."""
+    global_start: GlobalStartConfig = GlobalStartConfig()
+    """The global re-initialisation (FPFH + RANSAC)."""
+
+
 class SsfConfig(StrictModel):
     """The ``ssf`` frontend: learned scene flow refined at test time, segmentation, odometry."""
 
@@ -177,5 +238,7 @@ class SsfConfig(StrictModel):
     """Stage 2: the refinement's start from the network's static flow."""
     refine: FlowRefinementConfig = FlowRefinementConfig()
     """Stage 3: static refinement against scan k."""
+    recovery: MotionRecoveryConfig = MotionRecoveryConfig()
+    """Stage 5 (after flow-to-pose): motion-fault detection and global re-initialisation."""
     objects: ObjectRefinementConfig = ObjectRefinementConfig()
-    """Stage 5 (after flow-to-pose): moving objects, instances and their flow."""
+    """Stage 6 (after flow-to-pose and recovery): moving objects, instances and their flow."""

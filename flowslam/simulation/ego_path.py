@@ -276,3 +276,36 @@ def trajectory_motion(times, x, y, yaw, frames: int | None, vehicle_center_x: fl
     s_track = PoseTrack(t_ext, s, np.zeros_like(s), np.zeros_like(s))
     return EgoMotion(route, s_track, sensor, frame_times, vehicle_center_x=vehicle_center_x,
                      description=f"given trajectory, {frames} frames")
+
+
+# ------------------------------------------------------------------ sharp turns at a low frame rate
+SHARP_TURNS_DEG = (0.0, 0.0, 40.0, 0.0, -30.0, -30.0, 0.0, 25.0, 45.0, 0.0, -20.0, 0.0)
+"""Yaw change per frame (deg) of :func:`write_sharp_turn_path`'s default: turns of 20-45 deg
+per frame, each after a straight step or another turn, so the constant-velocity prior
+is off by up to 45 deg at every change."""
+
+
+def sharp_turn_poses(yaw_steps_deg=SHARP_TURNS_DEG, step_m: float = 3.0, period_s: float = 0.5
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Planar z-up poses ``T_world_sensor`` (N+1, 4, 4) and their times (N+1,) (s) of a
+    path that moves ``step_m`` per frame (along the mean heading of the step) and turns
+    by ``yaw_steps_deg[k]`` (deg) in step k, frames ``period_s`` apart (0.5 s: 2 Hz)."""
+    from flowslam import geometry
+
+    yaw = np.concatenate([[0.0], np.cumsum(np.deg2rad(np.asarray(yaw_steps_deg, dtype=np.float64)))])
+    mid = 0.5 * (yaw[:-1] + yaw[1:])
+    xy = np.vstack([[0.0, 0.0], np.cumsum(step_m * np.column_stack([np.cos(mid), np.sin(mid)]), axis=0)])
+    poses = np.stack([geometry.make_T(geometry.from_euler("z", h)[:3, :3], [x, y, 0.0])
+                      for (x, y), h in zip(xy, yaw)])
+    return poses, np.arange(len(poses)) * period_s
+
+
+def write_sharp_turn_path(path: str | Path, yaw_steps_deg=SHARP_TURNS_DEG, step_m: float = 3.0,
+                          period_s: float = 0.5) -> Path:
+    """Write :func:`sharp_turn_poses` as a TUM file (a ``--trajectory`` for the simulator:
+    ``len(yaw_steps_deg)`` frames, each with its successor for the flow)."""
+    from flowslam.trajectory import Trajectory, write_tum
+
+    poses, times = sharp_turn_poses(yaw_steps_deg, step_m, period_s)
+    write_tum(path, Trajectory(poses, times))
+    return Path(path)
