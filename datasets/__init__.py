@@ -4,8 +4,19 @@
 first, then): a ``.bag`` file, or a folder with ``metadata.yaml`` / ``*.db3`` /
 ``*.mcap`` -> ``rosbag``; a folder with ``sequences/`` or ``velodyne/`` -> ``kitti``;
 a folder with ``sensors/lidar/`` -> ``argoverse2``; any other folder -> ``folder``
-(a folder of scan files). ``format=`` (``dataset.format`` in the run config)
-overrides the guess.
+(a folder of scan files). ``format=`` (``dataset.format`` in the run config,
+``flowslam run --format``) overrides the guess.
+
+Readers are plug-ins (``flowslam.registry``): entry points of the group
+``flowslam.datasets``, the built-ins included, each naming a :class:`Reader` (or a
+reader class, used only with ``format=NAME``). A third-party package adds a format with::
+
+    [project.entry-points."flowslam.datasets"]
+    ring = "my_package.ring:READER"      # READER = Reader(RingScans, detect=is_ring)
+
+Formats are tried in this order: in-process ones (``register_format``), third-party
+entry points (by package and name; one that fails to import is skipped with a warning),
+then the built-ins in ``_GUESS_ORDER``.
 
 The reader modules (and their heavy dependencies rosbags / pyarrow) are
 imported only when a dataset of that format is opened.
@@ -14,6 +25,7 @@ imported only when a dataset of that format is opened.
 from __future__ import annotations
 
 import importlib
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -22,16 +34,31 @@ from flowslam.config.dataset import DatasetConfig
 from flowslam.frame import Dataset, Frame
 from flowslam.errors import InputError
 
-__all__ = ["Dataset", "Frame", "open_dataset", "frame_range", "available_formats", "register_format"]
+__all__ = [
+    "Dataset", "Frame", "Reader", "open_dataset", "frame_range", "available_formats", "register_format",
+]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Reader:
+    """A dataset format: what a ``flowslam.datasets`` entry point names."""
+
+    open: Callable[..., Dataset]
+    """``open(path, **options) -> Dataset`` (typically the reader class)."""
+    detect: Callable[[Path], bool] | None = None
+    """``detect(path) -> bool``: this format is guessed for ``path``; None = only on request."""
+    options: tuple[str, ...] | None = None
+    """Keyword options the reader takes; None = pass every option that was given."""
 
 
 @dataclass(frozen=True)
 class _Format:
     name: str
-    opener: Callable[..., Dataset]
-    detect: Callable[[Path], bool]
-    options: tuple[str, ...] | None
-    """Keyword options the reader takes; None = pass every option that was given."""
+    package: str
+    load: Callable[[], Reader]
+    """The reader (a plug-in's is imported on first call; ``InputError`` if it cannot be)."""
 
 
 def _lazy(module: str, cls: str) -> Callable[..., Dataset]:
@@ -69,14 +96,33 @@ def _is_simulated(path: Path) -> bool:
     return is_simulated(path)
 
 
-_BUILTIN = [
-    _Format("rosbag", _lazy("rosbag", "RosBag"), _is_rosbag, ("topic", "gt_topic", "fix_times")),
-    _Format("simulated", _lazy("simulated", "SimulatedSequence"), _is_simulated, ("sequence", "fix_times")),
-    _Format("kitti", _lazy("kitti", "KittiOdometry"), _is_kitti, ("sequence", "vertical_correction_deg", "fix_times")),
-    _Format("argoverse2", _lazy("argoverse2", "Argoverse2Log"), _is_argoverse2, ("fix_times",)),
-    _Format("folder", _lazy("folder", "ScanFolder"), Path.is_dir, ("poses", "fix_times")),
-]
+# The built-in readers, named by flowslam's own entry points (pyproject.toml).
+ROSBAG = Reader(_lazy("rosbag", "RosBag"), _is_rosbag, ("topic", "gt_topic", "fix_times"))
+SIMULATED = Reader(_lazy("simulated", "SimulatedSequence"), _is_simulated, ("sequence", "fix_times"))
+KITTI = Reader(_lazy("kitti", "KittiOdometry"), _is_kitti, ("sequence", "vertical_correction_deg", "fix_times"))
+ARGOVERSE2 = Reader(_lazy("argoverse2", "Argoverse2Log"), _is_argoverse2, ("fix_times",))
+FOLDER = Reader(_lazy("folder", "ScanFolder"), Path.is_dir, ("poses", "fix_times"))
+
+_GUESS_ORDER = ("rosbag", "simulated", "kitti", "argoverse2", "folder")
+"""Built-in formats, most specific layout first (a simulated sequence is also a KITTI
+layout; any folder is a scan folder)."""
+
 _USER: list[_Format] = []
+
+
+def _as_reader(obj: Any) -> Reader:
+    return obj if isinstance(obj, Reader) else Reader(obj)
+
+
+def _plugin_formats() -> list[_Format]:
+    """The entry-point formats: third-party ones (by package, name), then the built-ins."""
+    from flowslam.registry import entry_point_plugins
+
+    plugins = entry_point_plugins("dataset")
+    rank = {name: k for k, name in enumerate(_GUESS_ORDER)}
+    third_party = [p for p in plugins if not p.builtin]
+    builtin = sorted((p for p in plugins if p.builtin), key=lambda p: rank.get(p.name, len(rank)))
+    return [_Format(p.name, p.package, lambda p=p: _as_reader(p.load())) for p in third_party + builtin]
 
 
 def register_format(
@@ -92,13 +138,28 @@ def register_format(
     its frames are sanitised with ``dataset.max_coordinate_m``.
     Registering an existing name replaces that entry.
     """
+    reader = Reader(cls, detect_fn)
     _USER[:] = [f for f in _USER if f.name != name]
-    _USER.insert(0, _Format(name, cls, detect_fn or (lambda _p: False), None))
+    _USER.insert(0, _Format(name, "(in-process)", lambda: reader))
 
 
 def _formats() -> list[_Format]:
     user_names = {f.name for f in _USER}
-    return _USER + [f for f in _BUILTIN if f.name not in user_names]
+    return _USER + [f for f in _plugin_formats() if f.name not in user_names]
+
+
+def _guess(path: Path, formats: list[_Format]) -> tuple[_Format, Reader] | None:
+    """The first format whose reader detects ``path``; a plug-in that cannot be imported
+    is skipped with a warning (it must not stop the others)."""
+    for f in formats:
+        try:
+            reader = f.load()
+        except InputError as error:
+            log.warning("dataset %s; skipped while guessing the format", error)
+            continue
+        if reader.detect is not None and reader.detect(path):
+            return f, reader
+    return None
 
 
 def available_formats() -> list[str]:
@@ -141,23 +202,25 @@ def open_dataset(path: str | Path, config: DatasetConfig | None = None, **option
         chosen = next((f for f in formats if f.name == fmt), None)
         if chosen is None:
             raise InputError(path, f"unknown format {fmt!r} (available: {', '.join(f.name for f in formats)})")
+        reader = chosen.load()
     else:
-        chosen = next((f for f in formats if f.detect(path)), None)
-        if chosen is None:
+        guessed = _guess(path, formats)
+        if guessed is None:
             raise InputError(
                 path, f"cannot tell the dataset format; set dataset.format (one of {', '.join(f.name for f in formats)})"
             )
+        chosen, reader = guessed
     given = {  # identity tests: 0 (e.g. no elevation correction) is an option that is set
         kw: v for field, kw in _READER_OPTIONS.items() if (v := getattr(c, field)) is not None and v is not False
     }
-    if chosen.options is not None:
-        unused = sorted(field for field, kw in _READER_OPTIONS.items() if kw in given and kw not in chosen.options)
+    if reader.options is not None:
+        unused = sorted(field for field, kw in _READER_OPTIONS.items() if kw in given and kw not in reader.options)
         if unused:
             raise InputError(
                 path, f"option(s) {', '.join(unused)} do not apply to the {chosen.name} format"
                 + ("" if fmt else " (detected; set dataset.format to choose another)"),
             )
-    dataset = chosen.opener(path, **given)
+    dataset = reader.open(path, **given)
     dataset.max_coordinate_m = c.max_coordinate_m
     return dataset
 

@@ -1,9 +1,10 @@
 """KITTI odometry reader (``sequences/XX/velodyne/*.bin``, ``calib.txt``, ``times.txt``, ``poses/XX.txt``).
 
 Frames: the *sensor frame* is the Velodyne frame. KITTI's GT poses are given for
-camera 0 (``P_i = T_cam0world_cam0i``); with ``Tr = T_cam0_velo`` from ``calib.txt``
+camera 0 (``P_i = T_cam0(0)_cam0(i)``); with ``Tr = T_cam0_velo`` from ``calib.txt``
 they become LiDAR poses ``T_world_velo_i = inv(Tr) @ P_i @ Tr``, where the world is
-the Velodyne frame of scan 0 (so pose 0 is ~identity). Units: metres, seconds
+the Velodyne frame of scan 0 (so pose 0 is ~identity): :func:`cam0_poses_to_velo`, and
+back to KITTI's convention (for ``trajectory_kitti.txt``) :func:`velo_poses_to_cam0`. Units: metres, seconds
 (``times.txt``, relative to the sequence start, strictly increasing: else
 ``InputError``, or a logged repair with ``fix_times``). KITTI has no per-point time.
 """
@@ -22,6 +23,22 @@ from flowslam.errors import InputError
 from flowslam.trajectory import read_trajectory
 
 log = logging.getLogger(__name__)
+
+def velo_poses_to_cam0(poses_velo: np.ndarray, T_cam0_velo: np.ndarray) -> np.ndarray:
+    """LiDAR poses ``T_velo(0)_velo(k)`` (N,4,4) -> KITTI's camera-0 poses
+    ``T_cam0(0)_cam0(k) = Tr @ T_velo(0)_velo(k) @ inv(Tr)`` (the convention of
+    ``poses/XX.txt``; an identity first pose stays the identity). Metres.
+
+    ``inv(Tr)`` is the exact matrix inverse, not the rigid one: ``calib.txt`` holds 7
+    digits, so its rotation is orthonormal to ~1e-7 only, and this way the two
+    conversions undo each other to rounding (``gt_kitti.txt`` = ``poses/XX.txt``)."""
+    return T_cam0_velo @ np.asarray(poses_velo, dtype=np.float64) @ np.linalg.inv(T_cam0_velo)
+
+
+def cam0_poses_to_velo(poses_cam0: np.ndarray, T_cam0_velo: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`velo_poses_to_cam0`: ``inv(Tr) @ P @ Tr`` (N,4,4)."""
+    return np.linalg.inv(T_cam0_velo) @ np.asarray(poses_cam0, dtype=np.float64) @ T_cam0_velo
+
 
 def read_kitti_calib(path: str | Path) -> dict[str, np.ndarray]:
     """Parse a KITTI ``calib.txt`` (``KEY: v1 v2 ...`` lines) into 3x4 matrices by key.
@@ -158,8 +175,7 @@ class KittiOdometry(ScanFileDataset):
             )
         if self.calib is None:
             raise InputError(calib_path, "missing; its Tr is needed to convert the camera-0 GT poses to LiDAR")
-        Tr = self.T_cam0_velo
-        return geometry.inv(Tr) @ traj.poses @ Tr
+        return cam0_poses_to_velo(traj.poses, self.T_cam0_velo)
 
     def _read(self, path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         points, intensity = read_kitti_bin(path)

@@ -1,7 +1,12 @@
 """The ``flowslam`` command line (typer). Heavy modules are imported inside commands.
 
 Bad input (``InputError``) prints one line, ``flowslam: error: FILE: problem``, and
-exits with code 2; ``--debug`` shows the traceback instead.
+exits with code 2; ``--debug`` shows the traceback instead. So does a bad command
+line (an unknown option, a value that is not one of the choices).
+
+Options are ``Annotated[type, typer.Option(...)]``; closed sets are ``str`` enums, so
+``--help`` lists the choices. Frontends and backends stay free strings (plug-ins), their
+help lists the names registered when the command starts.
 """
 
 from __future__ import annotations
@@ -11,12 +16,40 @@ import os
 import sys
 import time
 from contextlib import contextmanager
+from enum import Enum
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
 import typer
 
-app = typer.Typer(
+
+class _Flowslam(typer.Typer):
+    """``typer.Typer`` whose command-line errors are one ``flowslam: error:`` line, exit 2."""
+
+    def __call__(self, *args, **kwargs):
+        try:  # typer >= 0.2x ships its own copy of click
+            from typer._click import exceptions as click_errors
+        except ImportError:  # pragma: no cover
+            from click import exceptions as click_errors
+
+        try:
+            code = super().__call__(*args, **kwargs, standalone_mode=False)
+        except getattr(click_errors, "NoArgsIsHelpError", ()) as error:  # the help is already shown
+            sys.exit(error.exit_code)
+        except click_errors.UsageError as error:
+            where = f" (see `{error.ctx.command_path} --help`)" if error.ctx is not None else ""
+            print(f"flowslam: error: {' '.join(error.format_message().split())}{where}", file=sys.stderr)
+            sys.exit(2)
+        except click_errors.ClickException as error:
+            error.show()
+            sys.exit(error.exit_code)
+        except click_errors.Abort:
+            print("Aborted!", file=sys.stderr)
+            sys.exit(1)
+        sys.exit(code if isinstance(code, int) else 0)
+
+
+app = _Flowslam(
     name="flowslam",
     help="LiDAR SLAM with scene flow as odometry, on a GTSAM factor graph.",
     add_completion=False,
@@ -27,6 +60,73 @@ app = typer.Typer(
 _state = {"debug": False}
 
 
+# -- closed sets (str enums: --help lists them; tests/test_cli_idioms.py checks each
+#    against its source, which is too heavy to import at start-up) -----------------------
+
+class Variant(str, Enum):
+    """``--variant`` (``flowslam.config.VARIANTS``)."""
+
+    a_loam = "a-loam"
+    s_loam = "s-loam"
+
+
+class Preset(str, Enum):
+    """``simulate --preset`` (``flowslam.simulation.preset_names()``)."""
+
+    static = "static"
+    dh = "dh"
+    dt = "dt"
+    rush_hour = "rush-hour"
+    kitti00_path = "kitti00-path"
+    demo = "demo"
+
+
+class Sensor(str, Enum):
+    """``simulate --sensor`` (``flowslam.simulation.sensor_names()``)."""
+
+    hdl64 = "hdl64"
+    av2 = "av2"
+    vlp32c = "vlp32c"
+    vlp16 = "vlp16"
+    os1_128 = "os1-128"
+
+
+class ModelPreset(str, Enum):
+    """``train --preset``: the network size (``flowslam.sceneflow.network.model.PRESETS``)."""
+
+    tiny = "tiny"
+    full = "full"
+    cpu = "cpu"
+
+
+def _names(kind: str) -> list[str]:
+    """The plug-ins of ``kind`` installed now (entry points; nothing is imported)."""
+    from flowslam.registry import plugins
+
+    return [p.name for p in plugins(kind)]
+
+
+DatasetFormat = Enum("DatasetFormat", {name: name for name in _names("dataset")}, type=str)
+"""``--format``: every reader installed (built-ins and ``flowslam.datasets`` plug-ins)."""
+
+
+def _value(choice: Optional[Enum]) -> Optional[str]:
+    return None if choice is None else choice.value
+
+
+# -- options shared by several commands ------------------------------------------------
+
+NoProgress = Annotated[bool, typer.Option("--no-progress", help="Hide the progress bar(s).")]
+ConfigFile = Annotated[Optional[Path], typer.Option(
+    "--config", "-c", help="Run config YAML (`flowslam config` prints one); options override it.")]
+Weights = Annotated[Optional[Path], typer.Option(
+    "--weights", help="ssf: a weights file instead of the shipped one.")]
+First = Annotated[Optional[int], typer.Option("--first", help="First frame index.")]
+MaxFrames = Annotated[Optional[int], typer.Option("--max-frames", "-n", help="Process at most N frames.")]
+FRONTENDS_HELP = f"Registered: {', '.join(_names('frontend'))} (`flowslam plugins`)."
+BACKENDS_HELP = f"Registered: {', '.join(_names('backend'))} (`flowslam plugins`)."
+
+
 def _stderr_console():
     from rich.console import Console
 
@@ -35,8 +135,8 @@ def _stderr_console():
 
 @app.callback()
 def _main(
-    debug: bool = typer.Option(False, "--debug", help="Show tracebacks and debug logs."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="Only warnings and errors."),
+    debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks and debug logs.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Only warnings and errors.")] = False,
 ):
     _state["debug"] = debug
     # Before torch loads OpenMP: spinning OpenMP threads turn a 0.1 s forward pass into
@@ -98,30 +198,36 @@ def _progress_callbacks(bar, label: str):
 
 @app.command()
 def run(
-    sequence: Path = typer.Argument(..., help="Sequence: KITTI folder, scan folder, ROS bag, AV2 log."),
-    frontend: Optional[str] = typer.Option(
-        None, "--frontend", "-f",
+    sequence: Annotated[Path, typer.Argument(help="Sequence: KITTI folder, scan folder, ROS bag, AV2 log.")],
+    frontend: Annotated[Optional[str], typer.Option(
+        "--frontend", "-f",
         help="Frontend (default kiss-icp): kiss-icp, ransac, ssf, sf (learned flow, no segmentation); ablations that "
              "read ground truth, SSF-PAN markers: gt (GT flow + GT segmentation), gt-flow (GT flow, none), "
-             "gt-seg (◐ ssf's flow + GT segmentation), gt-flow+ssf-seg (○ GT flow + ssf's segmentation)."),
-    backend: Optional[str] = typer.Option(None, "--backend", "-b", help="Backend name (default odometry)."),
-    variant: Optional[str] = typer.Option(
-        None, "--variant", help="a-loam (odometry only) or s-loam (loop closure, default; backends that take loops)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (see `flowslam config`)."),
-    output_dir: Optional[Path] = typer.Option(None, "--output-dir", "-o", help="Where run folders go (default results/)."),
-    fmt: Optional[str] = typer.Option(None, "--format", help="Force the reader: kitti, folder, rosbag, argoverse2."),
-    topic: Optional[str] = typer.Option(None, "--topic", help="ROS bags: the PointCloud2 topic."),
-    gt_topic: Optional[str] = typer.Option(None, "--gt-topic", help="ROS bags: Odometry/PoseStamped GT topic."),
-    sequence_id: Optional[str] = typer.Option(None, "--sequence", help="KITTI sequence id (e.g. 00)."),
-    poses: Optional[Path] = typer.Option(None, "--poses", help="Scan folders: GT poses file (KITTI or TUM)."),
-    weights: Optional[Path] = typer.Option(None, "--weights", help="ssf: a weights file instead of the shipped one."),
-    kitti_correction: Optional[float] = typer.Option(
-        None, "--kitti-correction-deg", help="KITTI beam elevation correction (default 0.205; 0 = off)."),
-    first: Optional[int] = typer.Option(None, "--first", help="First frame index."),
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", "-n", help="Process at most N frames."),
-    fix_times: bool = typer.Option(
-        False, "--fix-times", help="Repair scan timestamps that do not increase strictly (logged) instead of stopping."),
-    no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
+             "gt-seg (◐ ssf's flow + GT segmentation), gt-flow+ssf-seg (○ GT flow + ssf's segmentation). "
+             + FRONTENDS_HELP)] = None,
+    backend: Annotated[Optional[str], typer.Option(
+        "--backend", "-b", help="Backend (default odometry). " + BACKENDS_HELP)] = None,
+    variant: Annotated[Optional[Variant], typer.Option(
+        "--variant", help="a-loam (odometry only) or s-loam (loop closure, default; backends that take loops).")] = None,
+    config: ConfigFile = None,
+    output_dir: Annotated[Optional[Path], typer.Option(
+        "--output-dir", "-o", help="Where run folders go (default results/).")] = None,
+    fmt: Annotated[Optional[DatasetFormat], typer.Option(
+        "--format", help="Force the reader (default: guessed from the path).")] = None,
+    topic: Annotated[Optional[str], typer.Option("--topic", help="ROS bags: the PointCloud2 topic.")] = None,
+    gt_topic: Annotated[Optional[str], typer.Option("--gt-topic", help="ROS bags: Odometry/PoseStamped GT topic.")] = None,
+    sequence_id: Annotated[Optional[str], typer.Option("--sequence", help="KITTI sequence id (e.g. 00).")] = None,
+    poses: Annotated[Optional[Path], typer.Option("--poses", help="Scan folders: GT poses file (KITTI or TUM).")] = None,
+    weights: Weights = None,
+    kitti_correction: Annotated[Optional[float], typer.Option(
+        "--kitti-correction-deg", help="KITTI beam elevation correction (default 0.205; 0 = off).")] = None,
+    first: First = None,
+    max_frames: MaxFrames = None,
+    fix_times: Annotated[bool, typer.Option(
+        "--fix-times", help="Repair scan timestamps that do not increase strictly (logged) instead of stopping.")] = False,
+    no_progress: NoProgress = False,
+    rerun: Annotated[Optional[Path], typer.Option(
+        "--rerun", help="Also record a 3-D view of the run into this .rrd file (rerun; pip install flowslam[viz]).")] = None,
 ):
     """Estimate the trajectory of SEQUENCE and write it (TUM, KITTI), metrics and a plot."""
     from flowslam.signals import terminate_as_interrupt
@@ -131,28 +237,37 @@ def run(
 
         overrides = {
             "ssf.network.weights": weights and str(weights),
-            "dataset.format": fmt, "dataset.topic": topic, "dataset.gt_topic": gt_topic,
+            "dataset.format": _value(fmt), "dataset.topic": topic, "dataset.gt_topic": gt_topic,
             "dataset.sequence": sequence_id, "dataset.poses": poses and str(poses),
             "dataset.kitti_vertical_correction_deg": kitti_correction,
             "dataset.first_frame": first, "dataset.max_frames": max_frames,
             "dataset.fix_times": fix_times or None,
         }
         cfg = load_config(
-            config, frontend=frontend, backend=backend, output_dir=output_dir and str(output_dir), variant=variant,
-            **overrides,
+            config, frontend=frontend, backend=backend, output_dir=output_dir and str(output_dir),
+            variant=_value(variant), **overrides,
         )
         requested = [key for key, value in overrides.items() if value is not None]
         if variant is not None:
             requested.append("loop_closure.enabled")
         from flowslam.run import run_sequence
 
+        live = None
+        if rerun is not None:
+            from flowslam.viz.live import LiveRecorder
+
+            live = LiveRecorder(rerun)
+        listeners = [live.on_step] if live is not None else []
         if no_progress:
-            outcome = run_sequence(sequence, cfg, requested=requested)
+            outcome = run_sequence(sequence, cfg, requested=requested, step_listeners=listeners)
         else:
             with _progress() as bar:
                 on_start, on_frame = _progress_callbacks(bar, cfg.frontend)
-                outcome = run_sequence(sequence, cfg, on_start=on_start, on_frame=on_frame, requested=requested)
+                outcome = run_sequence(sequence, cfg, on_start=on_start, on_frame=on_frame, requested=requested,
+                                       step_listeners=listeners)
         _report_run(outcome)
+        if live is not None:
+            typer.echo(f"3-D view: {live.finish(outcome.result.poses, outcome.run_dir)} (open it with `rerun FILE`)")
         outcome.raise_for_error()
 
 
@@ -191,13 +306,15 @@ def _report_run(outcome) -> None:
 
 @app.command("eval")
 def evaluate_command(
-    estimate: Path = typer.Argument(..., help="Estimated trajectory (TUM or KITTI file)."),
-    ground_truth: Path = typer.Argument(..., help="Ground-truth trajectory (TUM or KITTI file)."),
-    max_diff: float = typer.Option(0.01, "--max-diff", help="Max timestamp difference (s) for association."),
-    offset: float = typer.Option(0.0, "--offset", help="Seconds added to the estimate's timestamps."),
-    delta: list[str] = typer.Option(["1"], "--delta", help="RPE deltas: N (frames) or Nm (metres); repeatable."),
-    no_align: bool = typer.Option(False, "--no-align", help="APE without Umeyama SE(3) alignment."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the metrics as JSON."),
+    estimate: Annotated[Path, typer.Argument(help="Estimated trajectory (TUM or KITTI file).")],
+    ground_truth: Annotated[Path, typer.Argument(help="Ground-truth trajectory (TUM or KITTI file).")],
+    max_diff: Annotated[float, typer.Option(
+        "--max-diff", help="Max timestamp difference (s) for association.")] = 0.01,
+    offset: Annotated[float, typer.Option("--offset", help="Seconds added to the estimate's timestamps.")] = 0.0,
+    delta: Annotated[list[str], typer.Option(
+        "--delta", help="RPE deltas: N (frames) or Nm (metres); repeatable.")] = ["1"],  # noqa: B006 (typer copies it)
+    no_align: Annotated[bool, typer.Option("--no-align", help="APE without Umeyama SE(3) alignment.")] = False,
+    json_out: Annotated[Optional[Path], typer.Option("--json", help="Also write the metrics as JSON.")] = None,
 ):
     """Compare an estimated trajectory with ground truth: APE, RPE, KITTI drift, Table I stats."""
     with _user_errors():
@@ -231,30 +348,35 @@ def evaluate_command(
 
 @app.command("simulate")
 def simulate_command(
-    out_dir: Path = typer.Argument(..., help="Output folder (KITTI layout + GT + manifest.json)."),
-    preset: str = typer.Option("dt", "--preset", "-p", help="static, dh, dt, rush-hour, kitti00-path, demo."),
-    frames: Optional[int] = typer.Option(None, "--frames", "-n", help="Number of scans (default: the preset's)."),
-    seed: int = typer.Option(0, "--seed", help="Town, traffic and noise seed (same seed = same output)."),
-    sensor: Optional[str] = typer.Option(None, "--sensor", "-s", help="hdl64, av2, vlp32c, vlp16, os1-128."),
-    columns: Optional[int] = typer.Option(None, "--columns", help="Azimuth steps per revolution."),
-    max_range: Optional[float] = typer.Option(None, "--max-range", help="Maximum range (m)."),
-    noise: Optional[float] = typer.Option(None, "--noise", help="Range noise, 1 sigma (m)."),
-    dropout: Optional[float] = typer.Option(None, "--dropout", help="Share of returns dropped at random."),
-    distortion: bool = typer.Option(False, "--distortion/--no-distortion", help="Motion during the sweep."),
-    trajectory: Optional[Path] = typer.Option(None, "--trajectory", help="Drive along this KITTI/TUM trajectory."),
-    trajectory_times: Optional[Path] = typer.Option(None, "--trajectory-times", help="times.txt for --trajectory."),
-    first_pose: int = typer.Option(0, "--first-pose", help="Start at this pose of --trajectory."),
-    preview: bool = typer.Option(False, "--preview", help="Write preview.png (top view by class and flow)."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output folder."),
-    workers: Optional[int] = typer.Option(None, "--workers", help="Rendering processes (default: cores)."),
-    no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
+    out_dir: Annotated[Path, typer.Argument(help="Output folder (KITTI layout + GT + manifest.json).")],
+    preset: Annotated[Preset, typer.Option("--preset", "-p", help="The scenario.")] = Preset.dt,
+    frames: Annotated[Optional[int], typer.Option(
+        "--frames", "-n", help="Number of scans (default: the preset's).")] = None,
+    seed: Annotated[int, typer.Option("--seed", help="Town, traffic and noise seed (same seed = same output).")] = 0,
+    sensor: Annotated[Optional[Sensor], typer.Option(
+        "--sensor", "-s", help="LiDAR model (default: the preset's).")] = None,
+    columns: Annotated[Optional[int], typer.Option("--columns", help="Azimuth steps per revolution.")] = None,
+    max_range: Annotated[Optional[float], typer.Option("--max-range", help="Maximum range (m).")] = None,
+    noise: Annotated[Optional[float], typer.Option("--noise", help="Range noise, 1 sigma (m).")] = None,
+    dropout: Annotated[Optional[float], typer.Option("--dropout", help="Share of returns dropped at random.")] = None,
+    distortion: Annotated[bool, typer.Option(
+        "--distortion/--no-distortion", help="Motion during the sweep.")] = False,
+    trajectory: Annotated[Optional[Path], typer.Option(
+        "--trajectory", help="Drive along this KITTI/TUM trajectory.")] = None,
+    trajectory_times: Annotated[Optional[Path], typer.Option(
+        "--trajectory-times", help="times.txt for --trajectory.")] = None,
+    first_pose: Annotated[int, typer.Option("--first-pose", help="Start at this pose of --trajectory.")] = 0,
+    preview: Annotated[bool, typer.Option("--preview", help="Write preview.png (top view by class and flow).")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing output folder.")] = False,
+    workers: Annotated[Optional[int], typer.Option("--workers", help="Rendering processes (default: cores).")] = None,
+    no_progress: NoProgress = False,
 ):
     """Simulate a LiDAR sequence with exact GT poses, scene flow, classes and instances."""
     with _user_errors():
         from flowslam.simulation import simulate, write_preview
 
         kwargs = dict(
-            preset=preset, frames=frames, seed=seed, sensor=sensor, columns=columns,
+            preset=preset.value, frames=frames, seed=seed, sensor=_value(sensor), columns=columns,
             max_range=max_range, range_noise=noise, dropout=dropout, distortion=distortion,
             trajectory=trajectory, trajectory_times=trajectory_times, first_pose=first_pose,
             overwrite=overwrite, workers=workers,
@@ -279,12 +401,13 @@ def simulate_command(
 
 @app.command("demo")
 def demo_command(
-    cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Where the demo sequence is cached."),
-    refresh: bool = typer.Option(False, "--refresh", help="Simulate the demo sequence again."),
-    output_dir: Path = typer.Option(Path("results"), "--output-dir", "-o", help="Where run folders go."),
-    frontends: Optional[list[str]] = typer.Option(
-        None, "--frontend", "-f", help="These frontends (repeatable; default kiss-icp, ssf, gt, gt-flow)."),
-    no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bars."),
+    cache_dir: Annotated[Optional[Path], typer.Option("--cache-dir", help="Where the demo sequence is cached.")] = None,
+    refresh: Annotated[bool, typer.Option("--refresh", help="Simulate the demo sequence again.")] = False,
+    output_dir: Annotated[Path, typer.Option("--output-dir", "-o", help="Where run folders go.")] = Path("results"),
+    frontends: Annotated[Optional[list[str]], typer.Option(
+        "--frontend", "-f", help="These frontends (repeatable; default kiss-icp, ssf, gt, gt-flow). " + FRONTENDS_HELP,
+    )] = None,
+    no_progress: NoProgress = False,
 ):
     """No data needed: simulate the default sequence once, run the main frontends x backends, print errors."""
     with _user_errors():
@@ -316,19 +439,24 @@ def demo_command(
 
 @app.command("bench")
 def bench_command(
-    sequences: Optional[list[Path]] = typer.Option(
-        None, "--sequence", "-s", help="Also run on this sequence (repeatable; any format `run` reads)."),
-    frontends: Optional[list[str]] = typer.Option(
-        None, "--frontend", "-f", help="Only these frontends (repeatable; default: every baseline and ablation)."),
-    no_default_suite: bool = typer.Option(False, "--no-default-suite", help="Only the --sequence ones."),
-    frames: Optional[int] = typer.Option(None, "--frames", help="Shorten the default suite's sequences (quick look)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config applied to every run."),
-    output_dir: Path = typer.Option(Path("results"), "--output-dir", "-o", help="Where the bench folder goes."),
-    resume: Optional[Path] = typer.Option(None, "--resume", help="Go on with the unfinished bench in this folder."),
-    cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Where simulated sequences are cached."),
-    jobs: Optional[int] = typer.Option(
-        None, "--jobs", "-j", min=1, help="Cells run at once, one OpenMP thread each when > 1 (default 1)."),
-    no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bars."),
+    sequences: Annotated[Optional[list[Path]], typer.Option(
+        "--sequence", "-s", help="Also run on this sequence (repeatable; any format `run` reads).")] = None,
+    frontends: Annotated[Optional[list[str]], typer.Option(
+        "--frontend", "-f", help="Only these frontends (repeatable; default: every baseline and ablation). "
+        + FRONTENDS_HELP)] = None,
+    no_default_suite: Annotated[bool, typer.Option("--no-default-suite", help="Only the --sequence ones.")] = False,
+    frames: Annotated[Optional[int], typer.Option(
+        "--frames", help="Shorten the default suite's sequences (quick look).")] = None,
+    config: Annotated[Optional[Path], typer.Option(
+        "--config", "-c", help="Run config YAML applied to every run (`flowslam config` prints one).")] = None,
+    output_dir: Annotated[Path, typer.Option("--output-dir", "-o", help="Where the bench folder goes.")] = Path("results"),
+    resume: Annotated[Optional[Path], typer.Option(
+        "--resume", help="Go on with the unfinished bench in this folder.")] = None,
+    cache_dir: Annotated[Optional[Path], typer.Option(
+        "--cache-dir", help="Where simulated sequences are cached.")] = None,
+    jobs: Annotated[Optional[int], typer.Option(
+        "--jobs", "-j", min=1, help="Cells run at once, one OpenMP thread each when > 1 (default 1).")] = None,
+    no_progress: NoProgress = False,
 ):
     """Frontends x (a-loam, s-loam) x sequences: SSF-PAN Table I, runtime vs RPE, trajectories."""
     with _user_errors():
@@ -372,14 +500,16 @@ def bench_command(
 
 @app.command("flow-eval")
 def flow_eval_command(
-    sequence: Path = typer.Argument(..., help="A sequence with GT flow (simulated, Argoverse 2 with flow labels)."),
-    frontend: str = typer.Option("ssf", "--frontend", "-f", help="Flow frontend to evaluate (ssf, gt-flow, gt)."),
-    weights: Optional[Path] = typer.Option(None, "--weights", help="ssf: a weights file instead of the shipped one."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (its dataset.* and frontend sections apply)."),
-    first: Optional[int] = typer.Option(None, "--first", help="First frame index."),
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", "-n", help="At most N frames."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the metrics as JSON."),
-    no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
+    sequence: Annotated[Path, typer.Argument(help="A sequence with GT flow (simulated, Argoverse 2 with flow labels).")],
+    frontend: Annotated[str, typer.Option(
+        "--frontend", "-f", help="Flow frontend to evaluate (ssf, gt-flow, gt). " + FRONTENDS_HELP)] = "ssf",
+    weights: Weights = None,
+    config: Annotated[Optional[Path], typer.Option(
+        "--config", "-c", help="Run config YAML (its dataset.* and frontend sections apply).")] = None,
+    first: First = None,
+    max_frames: MaxFrames = None,
+    json_out: Annotated[Optional[Path], typer.Option("--json", help="Also write the metrics as JSON.")] = None,
+    no_progress: NoProgress = False,
 ):
     """Scene-flow metrics of a frontend in pipeline conditions: EPE3D, Acc, 3-way EPE, IoU."""
     with _user_errors():
@@ -418,25 +548,31 @@ def flow_eval_command(
 
 @app.command("train")
 def train_command(
-    data: list[Path] = typer.Argument(None, help="Training sequences with GT flow and poses (simulated, AV2)."),
-    val: Optional[list[Path]] = typer.Option(None, "--val", help="Held-out validation sequence (repeatable)."),
-    config: Optional[Path] = typer.Option(
-        None, "--config", "-c", help="Run config YAML (its training: section) or a TrainConfig YAML/JSON; options override it."),
-    out_dir: Optional[Path] = typer.Option(None, "--out-dir", "-o", help="Checkpoints and history go here."),
-    preset: Optional[str] = typer.Option(None, "--preset", help="Model size: tiny (CPU) or full (GPU)."),
-    frames: Optional[int] = typer.Option(None, "--frames", help="Input frames per sample (5 default; 2 works)."),
-    max_points: Optional[int] = typer.Option(None, "--max-points", help="Points sampled per frame."),
-    epochs: Optional[int] = typer.Option(None, "--epochs"),
-    batch_size: Optional[int] = typer.Option(None, "--batch-size"),
-    lr: Optional[float] = typer.Option(None, "--lr"),
-    max_minutes: Optional[float] = typer.Option(None, "--max-minutes", help="Stop after this much wall time."),
-    seed: Optional[int] = typer.Option(None, "--seed"),
-    resume: Optional[Path] = typer.Option(None, "--resume", help="Continue from a checkpoint."),
-    init_weights: Optional[Path] = typer.Option(
-        None, "--init-weights", help="Start from these weights (file or checkpoint); fresh optimiser."
-    ),
-    export: Optional[Path] = typer.Option(None, "--export", help="Write the best checkpoint as a weights file."),
-    no_progress: bool = typer.Option(False, "--no-progress"),
+    data: Annotated[Optional[list[Path]], typer.Argument(
+        help="Training sequences with GT flow and poses (simulated, AV2).")] = None,
+    val: Annotated[Optional[list[Path]], typer.Option(
+        "--val", help="Held-out validation sequence (repeatable).")] = None,
+    config: Annotated[Optional[Path], typer.Option(
+        "--config", "-c", help="Run config YAML, the one `run` reads (`flowslam config` prints it): its training: "
+        "section applies; options override it.")] = None,
+    out_dir: Annotated[Optional[Path], typer.Option("--out-dir", "-o", help="Checkpoints and history go here.")] = None,
+    preset: Annotated[Optional[ModelPreset], typer.Option(
+        "--preset", help="Model size: tiny (CPU; cpu is the same) or full (GPU).")] = None,
+    frames: Annotated[Optional[int], typer.Option(
+        "--frames", help="Input frames per sample (5 default; 2 works).")] = None,
+    max_points: Annotated[Optional[int], typer.Option("--max-points", help="Points sampled per frame.")] = None,
+    epochs: Annotated[Optional[int], typer.Option("--epochs", help="Length of the OneCycle schedule.")] = None,
+    batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Samples per optimiser step.")] = None,
+    lr: Annotated[Optional[float], typer.Option("--lr", help="Peak learning rate.")] = None,
+    max_minutes: Annotated[Optional[float], typer.Option(
+        "--max-minutes", help="Stop after this much wall time.")] = None,
+    seed: Annotated[Optional[int], typer.Option("--seed", help="Sampling, priors and initialisation seed.")] = None,
+    resume: Annotated[Optional[Path], typer.Option("--resume", help="Continue from a checkpoint.")] = None,
+    init_weights: Annotated[Optional[Path], typer.Option(
+        "--init-weights", help="Start from these weights (file or checkpoint); fresh optimiser.")] = None,
+    export: Annotated[Optional[Path], typer.Option(
+        "--export", help="Write the best checkpoint as a weights file.")] = None,
+    no_progress: NoProgress = False,
 ):
     """Train the scene-flow network (multi-GPU/CPU: torchrun -m flowslam.sceneflow.network.train CONFIG.yaml)."""
     with _user_errors():
@@ -445,7 +581,7 @@ def train_command(
         from flowslam.sceneflow.network.train import export_weights, train
 
         cfg = load_training_config(
-            config, data=data or None, val=val or None, out_dir=out_dir, model_preset=preset, num_frames=frames,
+            config, data=data or None, val=val or None, out_dir=out_dir, model_preset=_value(preset), num_frames=frames,
             max_points=max_points, epochs=epochs, batch_size=batch_size, lr=lr, max_minutes=max_minutes,
             seed=seed, init_weights=init_weights,
         )
@@ -459,9 +595,29 @@ def train_command(
             typer.echo(f"weights: {export} (sha256 {digest})")
 
 
+@app.command("view")
+def view_command(
+    results: Annotated[Path, typer.Argument(help="A results folder of `flowslam run` (e.g. results/latest).")],
+    out: Annotated[Optional[Path], typer.Option(
+        "--out", help="The .rrd file to write (default RESULTS/view.rrd).")] = None,
+    no_scans: Annotated[bool, typer.Option(
+        "--no-scans", help="Do not re-read the scans from the run's dataset (trajectories, maps, objects only).")] = False,
+):
+    """Build a 3-D view (rerun .rrd) of a results folder after the fact (pip install flowslam[viz])."""
+    with _user_errors():
+        from flowslam.viz import import_rerun
+
+        import_rerun()  # before any work: one line saying how to install it
+        from flowslam.viz.from_results import record_results
+
+        path = record_results(results, out or results / "view.rrd", scans=not no_scans)
+        typer.echo(f"3-D view: {path} (open it with `rerun {path}`)")
+
+
 @app.command("config")
 def config_command(
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="Show this file merged over the defaults."),
+    config: Annotated[Optional[Path], typer.Option(
+        "--config", "-c", help="Show this file merged over the defaults.")] = None,
 ):
     """Print the run configuration as YAML (the defaults, or a file merged over them)."""
     with _user_errors():
@@ -472,13 +628,18 @@ def config_command(
 
 @app.command("plugins")
 def plugins_command():
-    """List the registered frontends, backends and dataset formats."""
-    from flowslam.datasets import available_formats
-    from flowslam.registry import backend_names, frontend_names
+    """List the frontends, backends and dataset formats with the package of each."""
+    from flowslam.registry import ignored_plugins, plugins
 
-    typer.echo("frontends: " + ", ".join(frontend_names()))
-    typer.echo("backends:  " + ", ".join(backend_names()))
-    typer.echo("datasets:  " + ", ".join(available_formats()))
+    for kind in ("frontend", "backend", "dataset"):
+        found = plugins(kind)
+        typer.echo(f"{kind}s:")
+        width = max((len(p.name) for p in found), default=0)
+        for p in found:
+            mark = "" if p.builtin else "  [third-party]"
+            typer.echo(f"  {p.name:<{width}}  {p.package}{mark}  ({p.target})")
+        for p in ignored_plugins(kind):
+            typer.echo(f"  ignored: {p.name!r} of {p.package} ({p.target}): the name is taken", err=True)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -3,15 +3,20 @@
 Files written by ``write_results`` (whatever exists; a failed run still writes
 the trajectory of the frames it processed):
 
-- ``trajectory_tum.txt``, ``trajectory_kitti.txt``: the estimate (``T_world_sensor``,
-  world = first processed scan).
+- ``trajectory_tum.txt``, ``trajectory_kitti_lidar.txt``: the estimate in the sensor
+  frame (``T_world_sensor``, world = first processed scan).
+- ``trajectory_kitti.txt``: the estimate in KITTI's convention: camera 0 as KITTI's
+  ``poses/XX.txt`` when the input has a KITTI calibration (``T_cam0_sensor``), else the
+  sensor frame (:mod:`flowslam.output_files`).
 - ``odometry_tum.txt``: the frontend's relative motions chained (no backend).
 - ``loops.csv``: accepted loop closures (frames, fitness, RMSE, correction size).
-- ``gt_tum.txt``, ``gt_kitti.txt``: the dataset's GT for the processed frames.
+- ``gt_tum.txt``, ``gt_kitti_lidar.txt``, ``gt_kitti.txt``: the dataset's GT for the
+  processed frames, in the same frames as the estimate's files of the same suffix.
 - ``config.yaml``: the configuration used.
 - ``metrics.json``: errors against GT (only when GT exists).
-- ``run.json``: what happened (frames, speed, error if any); written last, so it never
-  claims a file that is not on disk (``flowslam.slam.Slam.save``).
+- ``run.json``: what happened (frames, speed, error if any) and ``files``: each file's
+  format and frame; written last, so it never claims a file that is not on disk
+  (``flowslam.slam.Slam.save``).
 - ``trajectory_topview.png``: estimate vs GT, seen from above.
 - ``static_map.ply``, ``static_map.pcd``: the map (world frame, m; float32 x y z intensity,
   voxel means) from the final poses, without the points the frontend marked dynamic
@@ -40,6 +45,7 @@ import numpy as np
 from flowslam import geometry
 from flowslam.config import PipelineConfig, dump_config
 from flowslam.errors import InputError
+from flowslam.output_files import in_kitti_convention
 from flowslam.pipeline import RunResult
 from flowslam.trajectory import Trajectory, write_kitti, write_tum
 
@@ -149,17 +155,33 @@ def write_loops_csv(path: Path, loops) -> Path:
     return write_text(path, "\n".join(rows) + "\n")
 
 
+def write_trajectory_files(run_dir: Path, prefix: str, traj: Trajectory,
+                           T_cam0_sensor: np.ndarray | None = None) -> list[Path]:
+    """``PREFIX_tum.txt`` and ``PREFIX_kitti_lidar.txt`` (sensor frame, ``traj`` as given:
+    ``T_world_sensor``) and ``PREFIX_kitti.txt`` in KITTI's convention (camera 0 with
+    ``T_cam0_sensor`` = KITTI's ``Tr``, else the sensor frame; :mod:`flowslam.output_files`)."""
+    kitti = in_kitti_convention(traj, T_cam0_sensor)
+    return [
+        write_atomic(run_dir / f"{prefix}_tum.txt", lambda tmp: write_tum(tmp, traj)),
+        write_atomic(run_dir / f"{prefix}_kitti.txt", lambda tmp: write_kitti(tmp, kitti)),
+        write_atomic(run_dir / f"{prefix}_kitti_lidar.txt", lambda tmp: write_kitti(tmp, traj)),
+    ]
+
+
 def write_results(
     run_dir: Path,
     result: RunResult,
     config: PipelineConfig,
     gt: Trajectory | None,
     metrics: dict | None,
+    T_cam0_sensor: np.ndarray | None = None,
 ) -> list[Path]:
     """Write the outputs of a run (see module doc) except ``run.json``, which the caller
     writes last so that it never claims more than is on disk; returns the files
     written. Trajectories first (the most valuable), the top view (when
-    ``config.output.plot``) last. Every file goes through :func:`write_atomic`."""
+    ``config.output.plot``) last. Every file goes through :func:`write_atomic`.
+    ``T_cam0_sensor``: KITTI's ``Tr`` (4x4, sensor into camera 0) for KITTI input, which
+    puts ``trajectory_kitti.txt`` and ``gt_kitti.txt`` in KITTI's camera-0 convention."""
     written: list[Path] = []
 
     def out(name: str, write: Callable[[Path], object]) -> None:
@@ -169,12 +191,10 @@ def write_results(
     if len(result.indices):
         est = result.trajectory
         odo = Trajectory(geometry.compose_relatives(result.odometry), est.timestamps)
-        out("trajectory_tum.txt", lambda tmp: write_tum(tmp, est))
-        out("trajectory_kitti.txt", lambda tmp: write_kitti(tmp, est))
+        written += write_trajectory_files(run_dir, "trajectory", est, T_cam0_sensor)
         out("odometry_tum.txt", lambda tmp: write_tum(tmp, odo))
         if gt is not None:
-            out("gt_tum.txt", lambda tmp: write_tum(tmp, gt))
-            out("gt_kitti.txt", lambda tmp: write_kitti(tmp, gt))
+            written += write_trajectory_files(run_dir, "gt", gt, T_cam0_sensor)
         if result.loops:
             written.append(write_loops_csv(run_dir / "loops.csv", result.loops))
     if metrics is not None:

@@ -93,6 +93,7 @@ def run_sequence(
     tag: str | None = None,
     run_dir: Path | None = None,
     requested: Iterable[str] = (),
+    step_listeners: Iterable[Callable] = (),
 ) -> RunOutcome:
     """Run ``config.frontend`` + ``config.backend`` on the sequence at ``path``.
 
@@ -109,10 +110,13 @@ def run_sequence(
     ``frontend`` overrides ``config.frontend`` with an instance (e.g. a replay of
     recorded measurements); ``tag`` names the results folder; ``run_dir`` (created if
     missing) replaces the timestamped folder and leaves ``latest`` alone.
+    ``step_listeners`` see every ``flowslam.slam.StepResult`` (e.g. the 3-D recorder
+    of ``flowslam.viz.live``). For KITTI input the metrics are those of
+    ``trajectory_kitti.txt`` against ``gt_kitti.txt`` (camera 0, as the KITTI devkit).
     """
     dataset = open_dataset(path, config.dataset)
     frames = _frames_to_process(path, dataset, config)
-    slam = Slam(config, frontend=frontend)
+    slam = Slam(config, frontend=frontend, step_listeners=step_listeners)
     check_requested_options(config, slam.frontend, slam.backend, requested)
     timestamped = run_dir is None
     run_dir = _make_run_dir(path, config, tag, run_dir)
@@ -122,14 +126,17 @@ def run_sequence(
     result = drive(slam, dataset, frames, on_frame)
     with deferred_signals():
         gt = _ground_truth(dataset, result)
+        T_cam0_sensor = getattr(dataset, "T_cam0_velo", None)  # KITTI: files and metrics in camera 0
         metrics = None
         if gt is not None and len(result.indices) >= 2:
             from flowslam.evaluation import evaluate
+            from flowslam.output_files import in_kitti_convention
 
-            metrics = evaluate(result.trajectory, gt)
+            metrics = evaluate(in_kitti_convention(result.trajectory, T_cam0_sensor),
+                               in_kitti_convention(gt, T_cam0_sensor))
         run_info = {"sequence": str(path), "dataset": dataset.describe(), "frontend": config.frontend,
                     "backend": config.backend, "frames_requested": len(frames)}
-        slam.save(run_dir, gt=gt, metrics=metrics, run_info=run_info)
+        slam.save(run_dir, gt=gt, metrics=metrics, run_info=run_info, T_cam0_sensor=T_cam0_sensor)
         if timestamped:
             link_latest(run_dir)
     return RunOutcome(run_dir, result, metrics, dataset.describe())

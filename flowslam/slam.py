@@ -85,6 +85,8 @@ class StepResult:
     """Loop closures this scan closed (already in the backend)."""
     moving_objects: list
     """``MovingObject``s of the previous scan that this step found (sensor frame of that scan)."""
+    frame: Frame | None = None
+    """The scan of this step as processed (sensor frame; ``gt_pose`` where the dataset has GT)."""
 
     @property
     def T_prev_curr(self) -> np.ndarray | None:
@@ -120,7 +122,9 @@ class Slam:
     """flowslam one scan at a time (module doc). ``frontend``/``backend`` instances replace
     the ones ``config`` names; ``loop_closer`` replaces the configured one (``None``: no
     loop closure); ``outputs=False`` keeps no static map or objects log (for callers
-    that only want poses); ``listeners`` see every ``(frame, frontend output)``."""
+    that only want poses); ``listeners`` see every ``(frame, frontend output)``,
+    ``step_listeners`` every :class:`StepResult` (after its loop closures; e.g. the 3-D
+    recorder of :mod:`flowslam.viz.live`)."""
 
     def __init__(
         self,
@@ -131,6 +135,7 @@ class Slam:
         loop_closer: LoopCloser | None = _FROM_CONFIG,  # type: ignore[assignment]
         outputs: bool = True,
         listeners: Iterable[Listener] = (),
+        step_listeners: Iterable[Callable[["StepResult"], None]] = (),
     ):
         from flowslam.registry import make_backend, make_frontend
 
@@ -154,6 +159,7 @@ class Slam:
                 self.map = StaticMapBuilder(out.map_voxel_size, out.map_points_per_frame)
             self.objects = MovingObjectsLog()
         self.listeners = [sink.on_output for sink in (self.map, self.objects) if sink is not None] + list(listeners)
+        self.step_listeners = list(step_listeners)
         self._result = RunResult()
 
     # -- input ---------------------------------------------------------------------------
@@ -200,7 +206,10 @@ class Slam:
         r.frontend_stats.append(out.stats)
         r.seconds_per_frame.append(time.perf_counter() - start)
         objects = self.objects.objects[n_objects:] if self.objects is not None else []
-        return StepResult(frame.index, float(frame.timestamp), self.backend.latest_pose(), out, loops, objects)
+        step = StepResult(frame.index, float(frame.timestamp), self.backend.latest_pose(), out, loops, objects, frame)
+        for listener in self.step_listeners:
+            listener(step)
+        return step
 
     def _close_loops(self, frame: Frame) -> list[LoopClosure]:
         if self.loop_closer is None:
@@ -226,15 +235,19 @@ class Slam:
         return self.result().trajectory
 
     def save(self, results_dir: str | Path, *, gt: Trajectory | None = None, metrics: dict | None = None,
-             run_info: dict | None = None) -> list[Path]:
+             run_info: dict | None = None, T_cam0_sensor: np.ndarray | None = None) -> list[Path]:
         """Write a results folder (the files of ``flowslam run``; README) into
         ``results_dir`` (created if missing): every file atomically, ``run.json`` last.
-        ``run_info`` adds to what ``run.json`` says."""
+        ``run_info`` adds to what ``run.json`` says; ``run.json``'s ``files`` states each
+        file's format and frame. ``T_cam0_sensor``: KITTI's ``Tr`` (``calib.txt``, sensor
+        into camera 0) puts ``trajectory_kitti.txt``/``gt_kitti.txt`` in KITTI's camera-0
+        convention, as ``poses/XX.txt`` (``gt`` stays ``T_world_sensor``, sensor frame)."""
+        from flowslam.output_files import describe_files
         from flowslam.results import make_results_folder, write_atomic, write_json, write_results
 
         results_dir = make_results_folder(results_dir)
         result = self.result()
-        written = write_results(results_dir, result, self.config, gt, metrics)
+        written = write_results(results_dir, result, self.config, gt, metrics, T_cam0_sensor)
         if result.indices and getattr(self.backend, "exports_graph", False):
             written.append(write_atomic(results_dir / "graph.g2o", self.backend.write_g2o))
         if result.indices and self.map is not None and self.map.n_points:
@@ -248,6 +261,8 @@ class Slam:
             written.append(write_atomic(results_dir / "moving_objects.csv",
                                         lambda tmp: self.objects.write_csv(tmp, result.poses, result.indices)))
         info = self.describe(result) | (run_info or {})
+        names = [path.name for path in written] + ["run.json"]
+        info["files"] = describe_files(names, camera0=T_cam0_sensor is not None)
         written.append(write_json(results_dir / "run.json", info))
         return written
 

@@ -23,8 +23,8 @@ def test_run_writes_every_output(kitti_run):
     out, proc = kitti_run
     latest = out / "latest"
     assert latest.is_symlink() and latest.resolve().parent == out.resolve()
-    for name in ["trajectory_tum.txt", "trajectory_kitti.txt", "odometry_tum.txt", "gt_tum.txt",
-                 "gt_kitti.txt", "config.yaml", "metrics.json", "run.json", "trajectory_topview.png",
+    for name in ["trajectory_tum.txt", "trajectory_kitti.txt", "trajectory_kitti_lidar.txt", "odometry_tum.txt",
+                 "gt_tum.txt", "gt_kitti.txt", "gt_kitti_lidar.txt", "config.yaml", "metrics.json", "run.json", "trajectory_topview.png",
                  "static_map.ply", "static_map.pcd"]:
         assert (latest / name).is_file(), name
     assert (latest / "trajectory_topview.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -40,7 +40,7 @@ def test_run_writes_every_output(kitti_run):
 def test_kiss_icp_accuracy_on_real_kitti(kitti_run, kitti_extract):
     """KISS-ICP vs the ICP reference (the official GT of these frames is a constant-velocity fill)."""
     latest = kitti_run[0] / "latest"
-    est = read_trajectory(latest / "trajectory_kitti.txt")
+    est = read_trajectory(latest / "trajectory_kitti_lidar.txt")  # the reference is in the LiDAR frame
     ref = read_trajectory(kitti_extract / "reference_icp_lidar.txt")
     m_ref = evaluate(est, ref)
     assert m_ref["rpe"][0]["trans_m"]["rmse"] < 0.025  # 1.96 cm measured (2.26 cm without the KITTI correction)
@@ -54,11 +54,11 @@ def test_kiss_icp_accuracy_on_real_kitti(kitti_run, kitti_extract):
 def test_eval_command_matches_library(kitti_run, kitti_extract, tmp_path):
     latest = kitti_run[0] / "latest"
     ref = kitti_extract / "reference_icp_lidar.txt"
-    proc = flowslam("eval", latest / "trajectory_kitti.txt", ref, "--delta", "1", "--delta", "5m",
+    proc = flowslam("eval", latest / "trajectory_kitti_lidar.txt", ref, "--delta", "1", "--delta", "5m",
                     "--json", tmp_path / "m.json")
     assert proc.returncode == 0, proc.stderr
     saved = json.loads((tmp_path / "m.json").read_text())
-    lib = evaluate(read_trajectory(latest / "trajectory_kitti.txt"), read_trajectory(ref))
+    lib = evaluate(read_trajectory(latest / "trajectory_kitti_lidar.txt"), read_trajectory(ref))
     assert saved["rpe"][0]["trans_m"]["rmse"] == pytest.approx(lib["rpe"][0]["trans_m"]["rmse"], abs=1e-12)
     assert saved["rpe"][1]["delta_unit"] == "m" and saved["rpe"][1]["n_pairs"] > 0
     assert "RPE" in proc.stdout

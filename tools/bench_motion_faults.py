@@ -97,7 +97,7 @@ def kitti_check(kitti: Path, out: Path) -> dict:
     from flowslam.trajectory import read_trajectory
 
     r = run(kitti, out / "kitti", "ssf", "isam2")
-    est = read_trajectory(Path(r["run_dir"]) / "trajectory_kitti.txt")
+    est = read_trajectory(Path(r["run_dir"]) / "trajectory_kitti_lidar.txt")  # LiDAR frame, as the reference
     metrics = evaluate(est, read_trajectory(kitti / "reference_icp_lidar.txt"))
     rec = [ms for ms in r["recovery_ms"] if ms is not None]
     summary = {"median_ms_per_frame": r["median_ms_per_frame"],

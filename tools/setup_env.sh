@@ -31,5 +31,6 @@ fi
 # and pip never pulls the multi-GB CUDA build by accident.
 # shellcheck disable=SC2086
 "$VENV/bin/python" -m pip install -q $TORCH_PIP_ARGS "$TORCH_SPEC"
-"$VENV/bin/python" -m pip install -q -e ".[dev]"
+# viz (rerun-sdk) too, so that the 3-D view's tests run here; flowslam itself never needs it.
+"$VENV/bin/python" -m pip install -q -e ".[dev,viz]"
 echo "setup: flowslam installed in $VENV"

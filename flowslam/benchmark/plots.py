@@ -1,7 +1,7 @@
 """The bench's figures: SSF-PAN Fig. 7 (runtime vs RPE) and the trajectories per sequence.
 
 Top views are x/y of ``T_world_sensor`` (m), world = the first scan; the GT is drawn
-from the cell's ``gt_kitti.txt`` (the same frames).
+from the cell's ``gt_kitti_lidar.txt`` (the same frames, sensor frame).
 """
 
 from __future__ import annotations
@@ -77,12 +77,12 @@ def plot_trajectories(path: Path, sequence: str, cells: dict, frontends: list[st
         if not row:
             continue
         run_dir = Path(row["run_dir"])
-        if not gt_drawn and (run_dir / "gt_kitti.txt").is_file():
-            gt = read_trajectory(run_dir / "gt_kitti.txt").poses
+        if not gt_drawn and (run_dir / "gt_kitti_lidar.txt").is_file():  # sensor frame: x-y is the ground
+            gt = read_trajectory(run_dir / "gt_kitti_lidar.txt").poses
             ax.plot(gt[:, 0, 3], gt[:, 1, 3], "--", color="0.3", lw=2.0, label="ground truth")
             gt_drawn = True
-        if (run_dir / "trajectory_kitti.txt").is_file():
-            est = read_trajectory(run_dir / "trajectory_kitti.txt").poses
+        if (run_dir / "trajectory_kitti_lidar.txt").is_file():
+            est = read_trajectory(run_dir / "trajectory_kitti_lidar.txt").poses
             ax.plot(est[:, 0, 3], est[:, 1, 3], "-", lw=1.1, label=fe)
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x (m)")
