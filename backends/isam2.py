@@ -201,6 +201,8 @@ class Isam2Backend:
         self._odometry_cov: list[np.ndarray] = []
         self.loops: list[LoopRecord] = []
         """Every loop factor added, in order."""
+        self._kind_of_slot: dict[int, str] = {}
+        """Slots of ``_graph`` holding a map factor (``graph.g2o`` marks them)."""
         self.events: list[IndeterminateEvent] = []
         """Every update GTSAM refused, with the frame index and the repair."""
         self.update_seconds: list[float] = []
@@ -305,6 +307,29 @@ class Isam2Backend:
         )
         return record
 
+    def add_map_factor(self, i: int, j: int, T_i_j: np.ndarray, covariance: np.ndarray) -> bool:
+        """Add a scan-to-map measurement ``T_i_j`` (maps scan j into anchor scan i; 6x6
+        covariance, :mod:`flowslam.scan_to_map`) with the odometry's Huber kernel and update.
+        Returns False if GTSAM refused it (recorded in ``events``; the graph is unchanged)."""
+        i, j = int(i), int(j)
+        for k in (i, j):
+            if k not in self._known:
+                raise ValueError(f"map factor {i}-{j}: scan {k} was not added")
+        T = self._checked_pose(T_i_j, f"map factor {i}-{j}: T_i_j")
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.BetweenFactorPose3(_key(i), _key(j), gtsam.Pose3(T), self._robust(self._huber, covariance)))
+        slot = self._graph.size()
+        try:
+            self._rebuild(graph, gtsam.Values())
+        except _Rejected as error:
+            self._record(j, f"map factor {i}-{j}", str(error), "map factor dropped")
+            self._rebuild(gtsam.NonlinearFactorGraph(), gtsam.Values())
+            self._refresh_latest()
+            return False
+        self._kind_of_slot[slot] = "map"
+        self._refresh_latest()
+        return True
+
     def chain_covariance(self, i: int, j: int) -> np.ndarray:
         """6x6 covariance of the chained odometry ``T_i_j`` (first order, right perturbation):
         sum over steps k of Ad(R_k^-1) C_k Ad(R_k^-1)^T, with R_k the motion from step k to j."""
@@ -366,7 +391,8 @@ class Isam2Backend:
     def write_g2o(self, path) -> Path:
         """Write the factor graph and ``trajectory()`` as g2o (module doc, "Graph export");
         vertex ids are the dataset frame indices. Returns ``path``."""
-        edges, priors = graph_export.pose_graph(self._graph, {(r.i, r.j) for r in self.loops})
+        edges, priors = graph_export.pose_graph(self._graph, {(r.i, r.j) for r in self.loops},
+                                                kind_of_slot=self._kind_of_slot)
         poses = dict(zip(self._indices, self.trajectory()))
         return graph_export.write_g2o(path, poses, edges, priors)
 
@@ -386,6 +412,7 @@ class Isam2Backend:
         return {
             "scans": len(self._indices),
             "loops": len(self.loops),
+            "map_factors": len(self._kind_of_slot),
             "indeterminate_events": len(self.events),
             "rebuilds": self.rebuilds,
             "median_update_ms": q(upd, 50),

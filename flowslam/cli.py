@@ -209,6 +209,9 @@ def run(
         "--backend", "-b", help="Backend (default odometry). " + BACKENDS_HELP)] = None,
     variant: Annotated[Optional[Variant], typer.Option(
         "--variant", help="a-loam (odometry only) or s-loam (loop closure, default; backends that take loops).")] = None,
+    mapping: Annotated[Optional[bool], typer.Option(
+        "--mapping/--no-mapping", help="Scan-to-map factors beside the odometry (LOAM's mapping stage; "
+                                       "graph backends: -b isam2). Default: the config's mapping.enabled.")] = None,
     config: ConfigFile = None,
     output_dir: Annotated[Optional[Path], typer.Option(
         "--output-dir", "-o", help="Where run folders go (default results/).")] = None,
@@ -242,6 +245,7 @@ def run(
             "dataset.kitti_vertical_correction_deg": kitti_correction,
             "dataset.first_frame": first, "dataset.max_frames": max_frames,
             "dataset.fix_times": fix_times or None,
+            "mapping.enabled": mapping,
         }
         cfg = load_config(
             config, frontend=frontend, backend=backend, output_dir=output_dir and str(output_dir),

@@ -195,6 +195,16 @@ def is_se3(T: np.ndarray, tol: float = 1e-6) -> bool:
     )
 
 
+def orthonormalized(T: np.ndarray) -> np.ndarray:
+    """``T`` (4x4) with its rotation projected onto SO(3) (nearest in Frobenius norm, SVD)
+    and an exact last row: for libraries that refuse a rotation orthonormal only to ~1e-7
+    (Sophus, inside KISS-ICP, aborts the process on one)."""
+    T = np.asarray(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return make_T(R, T[:3, 3])
+
+
 def pose_sigmas(rotation_sigma_rad: float, translation_sigma_m: float) -> np.ndarray:
     """(6,) 1-sigma vector in GTSAM's Pose3 tangent order: 3x rotation (rad), 3x translation (m)."""
     return np.array([rotation_sigma_rad] * 3 + [translation_sigma_m] * 3, dtype=np.float64)

@@ -20,8 +20,8 @@ Records (one per line)
 ``FIX id``
     g2o's way of holding the first vertex (``readG2o`` ignores it: add a prior yourself).
 ``# FLOWSLAM_EDGE kind kernel k``
-    Before each edge: ``kind`` is ``odometry`` or ``loop`` (the loop-closure edges are
-    marked here), ``kernel`` the robust kernel of the original factor (``huber``,
+    Before each edge: ``kind`` is ``odometry``, ``loop`` (the loop-closure edges are
+    marked here) or ``map`` (scan-to-map factors, :mod:`flowslam.scan_to_map`), ``kernel`` the robust kernel of the original factor (``huber``,
     ``cauchy``, or ``gaussian`` for none) and ``k`` its width in whitened units.
 ``# FLOWSLAM_PRIOR id x y z qx qy qz qw I_11 ... I_66``
     A ``PriorFactorPose3`` (the anchor of the first scan; weak priors of repaired scans),
@@ -61,7 +61,7 @@ _HEADER = """\
 # VERTEX_SE3:QUAT id x y z qx qy qz qw: id = dataset frame index, T_world_sensor (m), world = first scan
 # EDGE_SE3:QUAT i j x y z qx qy qz qw + 21 information entries (upper triangle, order x y z rx ry rz):
 #   T_i_j maps scan j into scan i; the Gaussian model (inside the robust kernel of the run)
-# before each edge, a comment "FLOWSLAM_EDGE kind kernel k": kind odometry|loop, the run's kernel and width
+# before each edge, a comment "FLOWSLAM_EDGE kind kernel k": kind odometry|loop|map, the run's kernel and width
 # comments "FLOWSLAM_PRIOR id pose information": the run's priors (the first scan's anchor); FIX id: g2o's anchor
 """
 
@@ -121,11 +121,14 @@ def pose_graph(
     graph: gtsam.NonlinearFactorGraph,
     loop_pairs: Iterable[tuple[int, int]] = (),
     index_of_key: Callable[[int], int] = _symbol_index,
+    kind_of_slot: Mapping[int, str] | None = None,
 ) -> tuple[list[GraphEdge], list[GraphPrior]]:
     """The edges and priors of a graph of ``BetweenFactorPose3`` / ``PriorFactorPose3``
     (other factors raise ``ValueError``). ``index_of_key`` turns a GTSAM key into the scan
     index (default: the index of a ``gtsam.symbol``); edges whose ``(i, j)`` is in
-    ``loop_pairs`` are of kind ``"loop"``, the others ``"odometry"``."""
+    ``loop_pairs`` are of kind ``"loop"``, the others ``"odometry"``, unless
+    ``kind_of_slot`` names the kind of the factor at that slot of ``graph`` (e.g. ``"map"``:
+    a map factor can join the same two scans as an odometry factor)."""
     loops = {(int(i), int(j)) for i, j in loop_pairs}
     edges, priors = [], []
     for n in range(graph.size()):
@@ -136,7 +139,7 @@ def pose_graph(
         information = np.asarray(gaussian.information(), dtype=np.float64)
         ids = [index_of_key(key) for key in factor.keys()]
         if isinstance(factor, gtsam.BetweenFactorPose3):
-            kind = "loop" if tuple(ids) in loops else "odometry"
+            kind = (kind_of_slot or {}).get(n) or ("loop" if tuple(ids) in loops else "odometry")
             edges.append(GraphEdge(*ids, factor.measured().matrix(), information, kind, kernel, k))
         elif isinstance(factor, gtsam.PriorFactorPose3):
             priors.append(GraphPrior(ids[0], factor.prior().matrix(), information))

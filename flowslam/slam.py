@@ -149,6 +149,8 @@ class Slam:
 
                 loop_closer = make_loop_closer(self.config.loop_closure)
         self.loop_closer = loop_closer
+        self.scan_to_map = self._make_scan_to_map()
+        self._prev_frame: Frame | None = None
         self.map = self.objects = None
         if outputs:
             from flowslam.mapping import StaticMapBuilder
@@ -197,6 +199,8 @@ class Slam:
         n_objects = len(self.objects.objects) if self.objects is not None else 0
         for listener in self.listeners:
             listener(frame, out)
+        if self.scan_to_map is not None:
+            self._register_to_map(frame, out)
         loops = self._close_loops(frame)
         r = self._result
         if out.T_prev_curr is not None:
@@ -214,11 +218,38 @@ class Slam:
     def _close_loops(self, frame: Frame) -> list[LoopClosure]:
         if self.loop_closer is None:
             return []
-        found = self.loop_closer.add_scan(frame.index, frame.points, self.backend.latest_pose())
+        before = self.backend.latest_pose()
+        found = self.loop_closer.add_scan(frame.index, frame.points, before)
         for loop in found:
             self.backend.add_loop(loop.i, loop.j, loop.T_i_j, loop.covariance)
             self._result.loops.append(loop)
+        if found and self.scan_to_map is not None:
+            self.scan_to_map.moved(before, self.backend.latest_pose())
         return found
+
+    def _make_scan_to_map(self):
+        """The mapping stage (``mapping.enabled``; :mod:`flowslam.scan_to_map`), or None."""
+        if not self.config.mapping.enabled:
+            return None
+        if not hasattr(self.backend, "add_map_factor"):
+            raise InputError(None, f"mapping.enabled: backend {self.config.backend!r} takes no map factors "
+                                   "(the mapping stage needs a graph backend: -b isam2)")
+        from flowslam.scan_to_map import ScanToMap
+
+        return ScanToMap(self.config.mapping)
+
+    def _register_to_map(self, frame: Frame, out: FrontendOutput) -> None:
+        """Scan k-1 to the local map, one scan late for every frontend: a segmenting
+        frontend's static mask of scan k-1 comes with scan k (``out.points``); others'
+        scans are used whole. Its factor goes to the backend; ``mapping_ms`` to the stats."""
+        prev, self._prev_frame = self._prev_frame, frame
+        if prev is None:
+            return
+        points, mask = (out.points, out.static_mask) if out.points is not None else (prev.points, None)
+        factor = self.scan_to_map.step(prev.index, points, mask, self.backend.estimate)
+        if factor is not None:
+            self.backend.add_map_factor(factor.anchor, factor.scan, factor.T_anchor_scan, factor.covariance)
+        out.stats["mapping_ms"] = self.scan_to_map.stats.seconds[-1] * 1e3
 
     # -- output --------------------------------------------------------------------------
 
@@ -291,6 +322,7 @@ class Slam:
             "loop_closures": len(r.loops),
             "loops": [dict(i=lc.i, j=lc.j, fitness=lc.fitness, rmse_m=lc.inlier_rmse, **lc.info) for lc in r.loops],
             "backend_stats": getattr(self.backend, "stats", None),
+            "mapping": None if self.scan_to_map is None else self.scan_to_map.stats.as_dict(),
         }
 
     def stopped(self, error: BaseException, index: int) -> None:

@@ -6,7 +6,8 @@ from here, never the reverse. ``PipelineConfig`` holds them all (one YAML file):
 - ``dataset`` (:mod:`.dataset`), ``output`` (:mod:`.output`);
 - ``kiss_icp`` and ``flow_odometry`` (:mod:`.odometry`);
 - ``ssf`` with one section per stage (:mod:`.ssf`);
-- ``isam2`` (:mod:`.isam2`) and ``loop_closure`` (:mod:`.loop_closure`);
+- ``isam2`` (:mod:`.isam2`), ``loop_closure`` (:mod:`.loop_closure`) and ``mapping``
+  (:mod:`.mapping`);
 - ``training`` (:mod:`.training`).
 """
 
@@ -15,6 +16,7 @@ from flowslam.config.dataset import DatasetConfig
 from flowslam.config.describe import dump_config, missing_descriptions
 from flowslam.config.isam2 import Isam2Config
 from flowslam.config.loop_closure import LoopClosureConfig, ScanContextConfig, VerificationConfig
+from flowslam.config.mapping import MappingConfig
 from flowslam.config.odometry import FlowOdometryConfig, KissIcpConfig
 from flowslam.config.output import OutputConfig
 from flowslam.config.pipeline import VARIANTS, PipelineConfig, load_config, load_training_config
@@ -26,7 +28,7 @@ from flowslam.config.training import PriorNoise, TrainConfig
 
 __all__ = [
     "DatasetConfig", "FlowOdometryConfig", "FlowRefinementConfig", "Isam2Config", "KissIcpConfig",
-    "LoopClosureConfig", "MotionEvidenceConfig", "NetworkStageConfig", "ObjectRefinementConfig",
+    "LoopClosureConfig", "MappingConfig", "MotionEvidenceConfig", "NetworkStageConfig", "ObjectRefinementConfig",
     "OutputConfig", "PipelineConfig", "PoseStartConfig", "PriorNoise", "RansacConfig", "ScanContextConfig",
     "SsfConfig", "TrainConfig", "VARIANTS", "VerificationConfig", "dump_config", "load_config",
     "load_training_config", "missing_descriptions",

@@ -18,6 +18,7 @@ from flowslam.config.baselines import RansacConfig
 from flowslam.config.dataset import DatasetConfig
 from flowslam.config.isam2 import Isam2Config
 from flowslam.config.loop_closure import LoopClosureConfig
+from flowslam.config.mapping import MappingConfig
 from flowslam.config.odometry import FlowOdometryConfig, KissIcpConfig
 from flowslam.config.output import OutputConfig
 from flowslam.config.ssf import SsfConfig
@@ -50,6 +51,8 @@ class PipelineConfig(StrictModel):
     """The ``isam2`` backend."""
     loop_closure: LoopClosureConfig = LoopClosureConfig()
     """Loop detection for backends that take loops (``enabled``: s-loam, off: a-loam)."""
+    mapping: MappingConfig = MappingConfig()
+    """Scan-to-map registration (LOAM's mapping stage) for backends with factors (``isam2``)."""
     training: TrainConfig = TrainConfig()
     """``flowslam train``: training the scene-flow network."""
 

@@ -1,0 +1,62 @@
+"""Options of the scan-to-map stage (``mapping:`` in the run config), LOAM's mapping step.
+
+Each scan's static points are registered to a local voxel map of the recent static
+points, and the result goes into the factor graph beside the flow odometry (backends
+with factors only: ``isam2``, both variants). Units: metres and radians, except fields
+whose name says ``_deg``.
+"""
+
+from __future__ import annotations
+
+from pydantic import Field, model_validator
+
+from flowslam.config.base import StrictModel
+
+
+class MappingConfig(StrictModel):
+    """Local map (the recent registered scans with normals) and the registration to it."""
+
+    enabled: bool = False
+    """Register scans to the local map and add the factors (graph backends only)."""
+    every: int = Field(1, ge=1)
+    """Register every n-th scan only (the others get no map factor and are not mapped)."""
+    map_voxel_m: float = Field(0.75, gt=0)
+    """Voxel of the scans put in the map (normals from 10 neighbours in the scan)."""
+    source_voxel_m: float = Field(1.0, gt=0)
+    """Voxel of the points registered to the map."""
+    max_distance_m: float = Field(40.0, gt=0)
+    """Scans whose sensor is farther than this from the newest one leave the map (the
+    'last N metres') ..."""
+    max_scans: int = Field(10, ge=1)
+    """... and the map holds at most this many scans."""
+    max_range_m: float = Field(80.0, gt=0)
+    """Scan points farther than this from the sensor are not registered nor mapped."""
+    min_range_m: float = Field(3.0, ge=0)
+    """Scan points closer than this (the vehicle itself) are not used."""
+    max_correspondence_m: float = Field(1.0, gt=0)
+    """Correspondences farther apart than this are not used by the registration."""
+    kernel_m: float = Field(0.3, gt=0)
+    """Tukey kernel width of the point-to-plane residuals (m)."""
+    max_iterations: int = Field(30, ge=1)
+    """Registration iterations at most."""
+    min_points: int = Field(200, ge=10)
+    """A scan with fewer usable points is neither registered nor mapped."""
+    keyframe_distance_m: float = Field(10.0, gt=0)
+    """A new anchor keyframe when the sensor is this far from the current one: the factors
+    are ``T_anchor_k`` (both poses in the local map), so errors add up per keyframe."""
+    warmup_scans: int = Field(2, ge=1)
+    """Scans mapped before the first registration (the map must hold something)."""
+    rotation_std_deg: float = Field(0.05, gt=0)
+    """1-sigma per axis of a map factor's rotation (deg) ..."""
+    translation_std_m: float = Field(0.02, gt=0)
+    """... and translation (m)."""
+    max_prior_rotation_deg: float = Field(2.0, gt=0)
+    """A registration that moves the pose more than this from the odometry's is dropped ..."""
+    max_prior_translation_m: float = Field(0.5, gt=0)
+    """... or more than this (m): then no factor, and the map restarts at that scan."""
+
+    @model_validator(mode="after")
+    def _ranges(self) -> "MappingConfig":
+        if self.min_range_m >= self.max_range_m:
+            raise ValueError(f"mapping.min_range_m ({self.min_range_m}) must be below max_range_m ({self.max_range_m})")
+        return self

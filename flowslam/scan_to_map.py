@@ -1,0 +1,233 @@
+"""Scan-to-map registration: LOAM's mapping stage (``mapping:`` config, off by default).
+
+Flow odometry chains scan-to-scan motions, so a small systematic error of every step
+adds up. A mapping stage registers each scan's *static* points to a local map of the
+recent static points instead, so the error adds up per map, not per scan (A-LOAM's
+mapping step; KISS-ICP's whole method).
+
+Frames (all ``T_a_b``, 4x4, m):
+
+- *map frame*: the local map's world. It starts as the backend's world at the first
+  mapped scan; every scan is put in the map at its registered pose ``T_map_scan``.
+- *anchor*: a keyframe whose map pose is fixed; a new one every ``keyframe_distance_m``.
+  The factor of scan k is ``T_anchor_k = inv(T_map_anchor) @ T_map_k``: a relative pose
+  between two graph variables, so it stays valid when the backend moves its world.
+
+Each step (:meth:`ScanToMap.step`, every ``every``-th scan): the guess ``T_map_k`` is the
+last mapped scan's map pose times the backend's current motion from that scan to k; the
+scan's static points (downsampled to ``source_voxel_m``) are registered to the map by
+Open3D's point-to-plane ICP with a Tukey kernel. Point-to-plane, not KISS-ICP's
+point-to-point: on a simulated ``dt`` sequence with exact map poses, point-to-point to a
+voxel map was 4-8 cm off (the ground rings, which move with the sensor, pull it back),
+point-to-plane 0.3 cm. A result further than ``max_prior_*`` from the guess is not
+trusted (no factor; the map restarts at the scan). The scan (``map_voxel_m``, with normals
+from its own neighbours) then joins the map; scans more than ``max_distance_m`` from the
+newest, or beyond the last ``max_scans``, leave it. After a loop closure the backend's
+poses move: :meth:`ScanToMap.moved` carries the map rigidly with the latest pose.
+
+The covariance of a factor is the fixed ``rotation_std_deg``/``translation_std_m``
+(rotation first, as GTSAM's Pose3 tangent).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from flowslam import geometry
+from flowslam.config.mapping import MappingConfig
+
+__all__ = ["LocalMap", "MapFactor", "ScanToMap"]
+
+
+@dataclass
+class MapFactor:
+    """The measurement of one registered scan: ``T_anchor_scan`` (4x4, maps scan points
+    into the anchor's sensor frame, m) with its 6x6 covariance (rotation first)."""
+
+    anchor: int
+    scan: int
+    T_anchor_scan: np.ndarray
+    covariance: np.ndarray
+
+
+@dataclass
+class MappingStats:
+    """Counts and per-step wall times of the stage (``run.json`` ``mapping``)."""
+
+    factors: int = 0
+    restarts: int = 0
+    keyframes: int = 0
+    skipped: int = 0
+    """Scans with fewer than ``min_points`` usable points."""
+    seconds: list = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        ms = np.asarray(self.seconds) * 1e3
+        return {"factors": self.factors, "restarts": self.restarts, "keyframes": self.keyframes,
+                "skipped": self.skipped, "steps": len(ms),
+                "median_ms": float(np.median(ms)) if len(ms) else None,
+                "p95_ms": float(np.percentile(ms, 95)) if len(ms) else None}
+
+
+class LocalMap:
+    """The last scans put in the map: points and normals (oriented towards their sensor)
+    in the map frame (m)."""
+
+    def __init__(self, max_scans: int, max_distance_m: float, voxel_m: float):
+        self.max_distance_m, self.voxel_m = max_distance_m, voxel_m
+        self._scans: deque = deque(maxlen=max_scans)
+        """(points (N,3), normals (N,3), sensor position (3,)), map frame."""
+        self._cloud = None
+
+    def __len__(self) -> int:
+        return len(self._scans)
+
+    def clear(self) -> None:
+        self._scans.clear()
+        self._cloud = None
+
+    def add(self, points: np.ndarray, normals: np.ndarray, T_map_scan: np.ndarray) -> None:
+        """Add a scan (points and normals in its sensor frame) at ``T_map_scan``; scans
+        farther than ``max_distance_m`` from it leave."""
+        R, t = T_map_scan[:3, :3], T_map_scan[:3, 3]
+        self._scans.append((points @ R.T + t, normals @ R.T, t.copy()))
+        while np.linalg.norm(self._scans[0][2] - t) > self.max_distance_m:
+            self._scans.popleft()
+        self._cloud = None
+
+    def moved(self, C: np.ndarray) -> None:
+        """Apply ``C`` (4x4, old map frame -> new) to every scan."""
+        R, t = C[:3, :3], C[:3, 3]
+        self._scans = deque(((p @ R.T + t, n @ R.T, R @ o + t) for p, n, o in self._scans),
+                            maxlen=self._scans.maxlen)
+        self._cloud = None
+
+    def cloud(self):
+        """The map as one ``open3d.geometry.PointCloud`` with unit normals, downsampled to
+        ``voxel_m`` (the scans overlap: one point, the mean, per voxel), cached until it changes."""
+        import open3d as o3d
+
+        if self._cloud is None:
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate([s[0] for s in self._scans])))
+            cloud.normals = o3d.utility.Vector3dVector(np.concatenate([s[1] for s in self._scans]))
+            cloud = cloud.voxel_down_sample(self.voxel_m)
+            cloud.normalize_normals()
+            self._cloud = cloud
+        return self._cloud
+
+
+class ScanToMap:
+    """The local map and the registration to it (module doc). One per sequence."""
+
+    def __init__(self, config: MappingConfig | None = None):
+        self.config = c = config or MappingConfig()
+        self.map = LocalMap(c.max_scans, c.max_distance_m, c.map_voxel_m)
+        self._covariance = geometry.pose_covariance(np.deg2rad(c.rotation_std_deg), c.translation_std_m)
+        self._anchor: tuple[int, np.ndarray] | None = None
+        """(index, T_map_anchor): the factors' first scan."""
+        self._last: tuple[int, np.ndarray] | None = None
+        """(index, T_map_scan) of the last scan put in the map: the guess starts there."""
+        self._steps = 0
+        self.stats = MappingStats()
+
+    def step(self, index: int, points: np.ndarray, static_mask: np.ndarray | None,
+             estimate: Callable[[int], np.ndarray]) -> MapFactor | None:
+        """Register scan ``index`` and add it to the map. ``points`` (N,3) sensor frame;
+        ``static_mask`` (N,) bool or None (all static); ``estimate(i)`` the backend's
+        current ``T_world_sensor`` of an added scan. Returns the factor to add, or None
+        (also on the scans that ``every`` skips, which cost nothing)."""
+        self._steps += 1
+        if (self._steps - 1) % self.config.every:
+            return None
+        start = time.perf_counter()
+        try:
+            return self._step(index, points, static_mask, estimate)
+        finally:
+            self.stats.seconds.append(time.perf_counter() - start)
+
+    def moved(self, T_world_latest_before: np.ndarray, T_world_latest_after: np.ndarray) -> None:
+        """The backend moved its poses (a loop closure): carry the map and the anchor with
+        the latest scan's correction ``after @ inv(before)`` (world frame)."""
+        if self._anchor is None:
+            return
+        C = geometry.orthonormalized(np.asarray(T_world_latest_after) @ geometry.inv(T_world_latest_before))
+        self.map.moved(C)
+        self._anchor = (self._anchor[0], C @ self._anchor[1])
+        self._last = (self._last[0], C @ self._last[1])
+
+    # ------------------------------------------------------------------------------
+
+    def _prepare(self, points: np.ndarray, static_mask: np.ndarray | None):
+        """Static points in range, downsampled to ``map_voxel_m``: an Open3D cloud with normals."""
+        import open3d as o3d
+
+        c = self.config
+        p = np.asarray(points, dtype=np.float64)
+        if static_mask is not None:
+            p = p[np.asarray(static_mask, dtype=bool)]
+        r2 = np.einsum("ij,ij->i", p, p)
+        p = p[(r2 >= c.min_range_m**2) & (r2 <= c.max_range_m**2)]
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p)).voxel_down_sample(c.map_voxel_m)
+        if len(cloud.points) >= c.min_points:
+            cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4.0 * c.map_voxel_m, max_nn=10))
+            cloud.orient_normals_towards_camera_location(np.zeros(3))  # the sensor: averages in the map agree
+        return cloud
+
+    def _insert(self, cloud, T_map_scan: np.ndarray, index: int) -> None:
+        self.map.add(np.asarray(cloud.points), np.asarray(cloud.normals), T_map_scan)
+        self._last = (index, T_map_scan)
+
+    def _restart(self, index: int, cloud, T_world_scan: np.ndarray) -> None:
+        """A new map (frame = the backend's world now) holding this scan, its anchor."""
+        self.map.clear()
+        self._anchor = (index, T_world_scan)
+        self._insert(cloud, T_world_scan, index)
+        self.stats.keyframes += 1
+
+    def _register(self, cloud, guess: np.ndarray) -> np.ndarray:
+        import open3d as o3d
+
+        c = self.config
+        reg = o3d.pipelines.registration
+        source = cloud.voxel_down_sample(c.source_voxel_m)
+        result = reg.registration_icp(
+            source, self.map.cloud(), c.max_correspondence_m, guess,
+            reg.TransformationEstimationPointToPlane(reg.TukeyLoss(c.kernel_m)),
+            reg.ICPConvergenceCriteria(relative_fitness=1e-4, relative_rmse=1e-4, max_iteration=c.max_iterations))
+        return geometry.orthonormalized(np.asarray(result.transformation))
+
+    def _step(self, index, points, static_mask, estimate) -> MapFactor | None:
+        c = self.config
+        cloud = self._prepare(points, static_mask)
+        if len(cloud.points) < c.min_points:
+            self.stats.skipped += 1
+            return None
+        T_world_scan = geometry.orthonormalized(estimate(index))
+        if self._anchor is None:
+            self._restart(index, cloud, T_world_scan)
+            return None
+        anchor, T_map_anchor = self._anchor
+        last, T_map_last = self._last
+        guess = geometry.orthonormalized(T_map_last @ geometry.relative(estimate(last), T_world_scan))
+        if len(self.map) < c.warmup_scans:  # the map holds too little to register to yet
+            self._insert(cloud, guess, index)
+            return None
+        T_map_scan = self._register(cloud, guess)
+        xi = geometry.log_se3(geometry.inv(guess) @ T_map_scan)
+        if (np.rad2deg(np.linalg.norm(xi[:3])) > c.max_prior_rotation_deg
+                or np.linalg.norm(xi[3:]) > c.max_prior_translation_m):
+            self.stats.restarts += 1
+            self._restart(index, cloud, T_world_scan)
+            return None
+        self._insert(cloud, T_map_scan, index)
+        factor = MapFactor(anchor, index, geometry.relative(T_map_anchor, T_map_scan), self._covariance.copy())
+        self.stats.factors += 1
+        if np.linalg.norm(T_map_scan[:3, 3] - T_map_anchor[:3, 3]) > c.keyframe_distance_m:
+            self._anchor = (index, T_map_scan)
+            self.stats.keyframes += 1
+        return factor
