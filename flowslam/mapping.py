@@ -8,11 +8,24 @@ closures); :meth:`StaticMapBuilder.cloud` maps them into the world with
 Per-scan storage (the memory bound)
 -----------------------------------
 - Static points: voxel-downsampled on arrival (``voxel_size``; centroid and mean
-  intensity per voxel), capped at ``max_points_per_frame`` (seeded random subset),
-  stored as int16 centimetres plus a float16 intensity: 8 bytes a point. A scan has
-  32k (KITTI) to 38k (AV2) 0.2 m voxels; the run's default cap of 10000
-  (``output.map_points_per_frame``) costs 80 kB a scan, 360 MB for the 4541 scans of
-  KITTI 00 (lower the cap or raise ``voxel_size`` for long sequences).
+  intensity per voxel), then, when the scan comes with its odometry pose (always
+  through :meth:`StaticMapBuilder.on_output`, which chains the frontend's
+  ``T_prev_curr``), only the voxels *new to the map* are kept: those whose world voxel
+  (odometry frame, ``voxel_size`` grid) no earlier scan of the last ``dedup_window``
+  scans (default 50) saw. A surface seen by many consecutive scans is so stored
+  once, in the frame of the first scan that saw it, and the map stays re-expressible
+  with any later (loop-corrected) trajectory: consecutive scans move together under a
+  correction, so the scan that keeps a voxel places it where the others would have.
+  Stored as int16 centimetres plus a float16 intensity (8 bytes a point), capped at
+  ``max_points_per_frame`` (seeded random subset; after the first scan the new voxels
+  rarely reach it). Memory then grows with the space explored, not with the frames:
+  on the simulated KITTI-00 path (64 x 512 beams, 0.82 m a scan, ~16k voxels a scan)
+  about 1,600 points (13 kB) a scan, instead of the 10,000 (80 kB) a scan that a
+  plain per-scan cap kept. The recently seen voxels (sorted int64 keys and the last
+  scan that saw each, pruned to the window) are bounded: ~250k keys, 4 MB. A scan
+  given without a pose (:meth:`StaticMapBuilder.add` without ``T_world_sensor``, or
+  after a frontend output without ``T_prev_curr``, which restarts the odometry chain)
+  is kept whole (up to the cap), as is every scan with ``dedup_window=0``.
 - Dynamic points (those the frontend marked dynamic, i.e. removed from the map): one
   point per voxel and instance (the first; coordinates and ids unaveraged), same cap,
   int16 centimetres + float16 intensity + int32 instance id: 12 bytes a point, about
@@ -46,7 +59,7 @@ import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -188,7 +201,7 @@ def _reserve(path: Path, nbytes: int) -> None:
             f.truncate(nbytes)
 
 
-@dataclass
+@dataclass(slots=True)
 class _Scan:
     """One scan's stored points: int16 centimetres (sensor frame), float16 intensity,
     int32 instance ids (or None)."""
@@ -214,9 +227,8 @@ class _ScanStore:
         """Store (replace) scan ``index``: (n,3) points (m, sensor frame), (n,) intensity and
         instance ids, capped (seeded random subset) and quantised. Returns the points kept."""
         index = int(index)
-        if len(points) > self.max_points_per_frame:
-            rng = np.random.default_rng([self.seed, index])
-            keep = np.sort(rng.choice(len(points), self.max_points_per_frame, replace=False))
+        keep = self.capped(index, len(points))
+        if keep is not None:
             points, intensity = points[keep], intensity[keep]
             instance = None if instance is None else instance[keep]
         q = np.round(points / STORAGE_RESOLUTION_M)
@@ -230,9 +242,23 @@ class _ScanStore:
         self.version += 1
         return int(np.count_nonzero(ok))
 
+    def capped(self, index: int, n: int) -> np.ndarray | None:
+        """Sorted indices of the seeded random subset of ``n`` points that scan ``index``
+        keeps under the cap, or None when all ``n`` fit."""
+        if n <= self.max_points_per_frame:
+            return None
+        rng = np.random.default_rng([self.seed, int(index)])
+        return np.sort(rng.choice(n, self.max_points_per_frame, replace=False))
+
     @property
     def n_points(self) -> int:
         return int(sum(len(s.points) for s in self.scans.values()))
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the stored point arrays."""
+        return int(sum(s.points.nbytes + s.intensity.nbytes + (0 if s.instance is None else s.instance.nbytes)
+                       for s in self.scans.values()))
 
     def points_of(self, index: int) -> np.ndarray:
         """Stored points of scan ``index`` (n,3), sensor frame, m."""
@@ -257,6 +283,76 @@ class _ScanStore:
         if not parts:
             return np.zeros((0, 3)), np.zeros(0, np.float32), np.zeros(0, np.int32), np.zeros(0, np.int32)
         return tuple(np.concatenate(column) for column in zip(*parts))
+
+
+_KEY_BITS = 21
+_KEY_HALF = 1 << (_KEY_BITS - 1)
+
+
+def _world_voxel_keys(points_world: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(keys (N,) int64, valid (N,) bool)``: each point's ``voxel_size`` voxel packed into
+    one int64 (21 bits per axis, +-2^20 voxels about the origin); ``valid`` is False
+    beyond that range (those points are never deduplicated)."""
+    v = np.floor(points_world / voxel_size).astype(np.int64) + _KEY_HALF
+    valid = ((v >= 0) & (v < (1 << _KEY_BITS))).all(axis=1)
+    v = np.where(valid[:, None], v, 0)
+    return (v[:, 0] << (2 * _KEY_BITS)) | (v[:, 1] << _KEY_BITS) | v[:, 2], valid
+
+
+class _RecentVoxels:
+    """World voxels seen by the last ``window`` scans: sorted unique int64 keys and, for
+    each, the newest scan index that saw it. Vectorised (``searchsorted``/``insert``);
+    entries older than the window are pruned every ``window`` scans, so the size is
+    bounded by about two windows of new voxels plus one scan."""
+
+    def __init__(self, window: int):
+        self.window = int(window)
+        self.keys = np.zeros(0, np.int64)
+        self.last = np.zeros(0, np.int64)
+        self._pruned_at: int | None = None
+
+    def observe(self, keys: np.ndarray, valid: np.ndarray, index: int,
+                choose: Callable[[np.ndarray], np.ndarray]) -> tuple[np.ndarray, int]:
+        """Scan ``index`` sees voxels ``keys`` ((N,) int64; ``valid`` (N,) False: never
+        deduplicated). Those seen by a scan in ``[index - window, index)`` are dropped;
+        ``choose(candidates)`` picks which of the others (sorted indices) the scan keeps.
+        What was seen before and what is kept are then recorded as seen by ``index``.
+        Returns ``(kept indices (sorted), count dropped)``. One sort and one binary search
+        of the scan's keys: O(N log N + N log M) for M recent keys, plus O(M) to insert."""
+        n = len(keys)
+        order = np.argsort(keys, kind="stable")
+        ks, ok = keys[order], valid[order]
+        m = len(self.keys)
+        pos = np.searchsorted(self.keys, ks)
+        hit = np.zeros(n, bool)
+        if m:
+            inside = pos < m
+            hit[inside] = self.keys[pos[inside]] == ks[inside]
+        last = np.where(hit, self.last[np.minimum(pos, max(m - 1, 0))] if m else 0, np.iinfo(np.int64).min)
+        seen_sorted = hit & ok & (last < index) & (last >= index - self.window)
+        seen = np.empty(n, bool)
+        seen[order] = seen_sorted
+        kept = choose(np.flatnonzero(~seen))
+        observed = seen.copy()
+        observed[kept] = True
+        observed_sorted = observed[order] & ok
+        update = observed_sorted & hit
+        self.last[pos[update]] = np.maximum(self.last[pos[update]], index)
+        new = observed_sorted & ~hit
+        new_keys, new_pos = ks[new], pos[new]
+        first = np.ones(len(new_keys), bool)
+        first[1:] = new_keys[1:] != new_keys[:-1]  # one entry per voxel
+        self.keys = np.insert(self.keys, new_pos[first], new_keys[first])
+        self.last = np.insert(self.last, new_pos[first], index)
+        if self._pruned_at is None or index - self._pruned_at >= self.window or index < self._pruned_at:
+            keep = self.last >= index - self.window
+            self.keys, self.last = self.keys[keep], self.last[keep]
+            self._pruned_at = index
+        return kept, int(np.count_nonzero(seen))
+
+    @property
+    def nbytes(self) -> int:
+        return self.keys.nbytes + self.last.nbytes
 
 
 def _intensity_or_zeros(intensity: np.ndarray | None, n: int) -> np.ndarray:
@@ -309,11 +405,21 @@ class StaticMapBuilder:
     """Collects static points per scan (and, in ``dynamic``, the points marked dynamic);
     builds the world map from any set of poses."""
 
-    def __init__(self, voxel_size: float = 0.2, max_points_per_frame: int = 30000, seed: int = 0):
+    def __init__(self, voxel_size: float = 0.2, max_points_per_frame: int = 30000, seed: int = 0,
+                 dedup_window: int = 50):
         if not voxel_size > 0:
             raise ValueError(f"voxel_size must be > 0 (m), got {voxel_size}")
+        if dedup_window < 0:
+            raise ValueError(f"dedup_window must be >= 0 (scans), got {dedup_window}")
         self.voxel_size = float(voxel_size)
         self.store = _ScanStore(max_points_per_frame, seed, "static map")
+        self.dedup_window = int(dedup_window)
+        """Scans back within which a voxel already seen is not stored again (0: keep all)."""
+        self._recent = _RecentVoxels(self.dedup_window)
+        self._odometry: dict[int, np.ndarray] = {}
+        """``T_world_sensor`` (odometry frame) of the last scans seen by ``on_output``."""
+        self.deduplicated = 0
+        """Voxel centroids not stored because a recent scan had seen their voxel."""
         self.dynamic = DynamicPoints(voxel_size, max_points_per_frame, seed)
         """The points the frontend marked dynamic (``dynamic_points.ply``)."""
         self.removes_dynamic = False
@@ -341,10 +447,12 @@ class StaticMapBuilder:
     # -- collecting -------------------------------------------------------------
 
     def add(self, index: int, points_sensor: np.ndarray, static_mask: np.ndarray | None = None,
-            intensity: np.ndarray | None = None) -> int:
+            intensity: np.ndarray | None = None, T_world_sensor: np.ndarray | None = None) -> int:
         """Keep scan ``index``'s static points ((N,3) in its sensor frame, m; ``static_mask``
         (N,) bool or None = all; ``intensity`` (N,) or None = 0). Replaces an earlier entry
-        of the same index. Returns the number of points kept."""
+        of the same index. With ``T_world_sensor`` (the scan's odometry pose; scans in
+        index order) only the voxels no recent earlier scan saw are kept (module doc).
+        Returns the number of points kept."""
         pts = np.asarray(points_sensor, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"points must be (N,3); got {pts.shape}")
@@ -355,7 +463,17 @@ class StaticMapBuilder:
                 raise ValueError(f"static_mask must be (N,) with N={len(pts)}; got {mask.shape}")
             keep &= mask
         centroids, inten = voxel_means(pts[keep], self.voxel_size, _intensity_or_zeros(intensity, len(pts))[keep])
-        return self.store.put(index, centroids, inten)
+        if T_world_sensor is None or self.dedup_window == 0:
+            return self.store.put(index, centroids, inten)
+        keys, valid = _world_voxel_keys(geometry.transform_points(T_world_sensor, centroids), self.voxel_size)
+
+        def choose(new: np.ndarray) -> np.ndarray:  # the cap's seeded subset of the new voxels
+            capped = self.store.capped(index, len(new))
+            return new if capped is None else new[capped]
+
+        kept, dropped = self._recent.observe(keys, valid, int(index), choose)
+        self.deduplicated += dropped
+        return self.store.put(index, centroids[kept], inten[kept])
 
     def on_output(self, frame, output) -> None:
         """``run_pipeline(on_output=...)`` adapter.
@@ -371,15 +489,23 @@ class StaticMapBuilder:
         """
         last, self._last = self._last, (int(frame.index), frame.intensity)
         prev_index, prev_intensity = last if last is not None else (output.index - 1, None)
+        pose_prev = self._odometry.get(prev_index)
+        restart = pose_prev is None or output.T_prev_curr is None
+        if restart:  # first scan, or no motion: a new odometry chain, nothing recent to compare with
+            pose = np.eye(4)
+            self._recent = _RecentVoxels(self.dedup_window)
+        else:
+            pose = pose_prev @ np.asarray(output.T_prev_curr, dtype=np.float64)
+        self._odometry = {int(frame.index): pose} if restart else {prev_index: pose_prev, int(frame.index): pose}
         if output.points is not None:
             self._per_point_frontend = True
-            self.add(prev_index, output.points, output.static_mask, prev_intensity)
+            self.add(prev_index, output.points, output.static_mask, prev_intensity, None if restart else pose_prev)
             if output.static_mask is not None:
                 self._add_dynamic(prev_index, output, prev_intensity)
         elif self._per_point_frontend:
             self.skipped_outputs += 1
         else:
-            self.add(frame.index, frame.points, None, frame.intensity)
+            self.add(frame.index, frame.points, None, frame.intensity, pose)
 
     def _add_dynamic(self, index: int, output, intensity: np.ndarray | None) -> None:
         self.removes_dynamic = True

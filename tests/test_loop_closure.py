@@ -22,6 +22,7 @@ from flowslam.loop_closure.candidates import CandidateIndex
 from flowslam.config import ScanContextConfig, VerificationConfig
 from flowslam.loop_closure.detector import ScanContextLoopCloser
 from flowslam.loop_closure.verification import (
+    CloudStore,
     CompactCloud,
     downsample,
     open3d_information_to_covariance,
@@ -178,6 +179,33 @@ def test_compact_cloud_round_trip():
         CompactCloud(np.array([[400.0, 0, 0]]))
 
 
+def test_cloud_store_spills_to_disk_and_falls_back_to_memory(tmp_path, monkeypatch, caplog):
+    """The loop closer's clouds: in an unlinked file (a few bytes a cloud in memory), read
+    back exactly; without a file, or once writing fails, in memory, the spilled ones still
+    readable."""
+    import os
+
+    rng = np.random.default_rng(3)
+    clouds = [CompactCloud(rng.uniform(-80, 80, (n, 3))) for n in (1000, 0, 2500, 7)]
+    spilled = CloudStore(directory=str(tmp_path))
+    for c in clouds[:3]:
+        spilled.append(c)
+    assert list(tmp_path.iterdir()) == []  # unlinked: nothing left behind
+    assert spilled.disk_bytes == 3500 * 6 and spilled.nbytes == 3 * 16
+    with caplog.at_level(logging.WARNING):
+        monkeypatch.setattr(os, "pwrite", lambda *a: (_ for _ in ()).throw(OSError(28, "No space left")))
+        assert spilled.append(clouds[3]) == 3
+    assert "No space left" in caplog.text and spilled.nbytes == 4 * 16 + 7 * 6
+    in_memory = CloudStore(spill=False)
+    for c in clouds:
+        in_memory.append(c)
+    for store in (spilled, in_memory):
+        assert len(store) == 4
+        for k, c in enumerate(clouds):
+            np.testing.assert_array_equal(store.points(k), c.points())
+    assert in_memory.disk_bytes == 0
+
+
 def test_icp_recovers_the_reference_from_perturbed_starts(kitti, reference):
     """Frame 2 onto frame 0: the same answer from several wrong starts, within a few cm of
     the independent ICP reference (which used non-ground points and 0.2 m voxels)."""
@@ -258,7 +286,8 @@ def test_detector_closes_loops_on_a_revisit_with_a_turned_sensor(kitti, referenc
         assert f"loop closure {loop.i}-{loop.j}: fitness" in caplog.text
     stats = closer.stats.as_dict()
     assert stats["accepted"] == len(loops) and stats["scans"] == 16
-    assert closer.memory_bytes() < 16 * 80_000  # compact clouds + descriptors
+    assert closer.memory_bytes() < 16 * 5_000  # descriptors (float16), keys, poses: ~3 kB a scan
+    assert 16 * 6_000 < closer.disk_bytes() < 16 * 80_000  # the verification clouds, spilled
 
 
 def test_drift_gate_rejects_a_look_alike_place_far_away(kitti, reference):

@@ -10,6 +10,8 @@ eligible; the few eligible scans it does not hold yet are compared directly.
 
 from __future__ import annotations
 
+from bisect import bisect_right
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -45,7 +47,7 @@ class CandidateIndex:
         by_frames = max(0, n - 1 - self.exclude_recent_frames)
         limit = self._path_m[-1] - self.exclude_recent_m if n else 0.0
         # path is non-decreasing: scans 0..e-1 are those with path <= limit
-        by_metres = int(np.searchsorted(self._path_m, limit, side="right")) if n else 0
+        by_metres = bisect_right(self._path_m, limit) if n else 0  # O(log n), no list -> array copy
         return min(by_frames, by_metres)
 
     def query(self, key: np.ndarray, k: int) -> np.ndarray:

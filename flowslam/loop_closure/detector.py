@@ -14,9 +14,11 @@ Per scan ``j`` (``add_scan``):
    *correction*: how far ``T_i_j`` is from the current estimate
    ``inv(T_world_i) @ T_world_j`` (m and deg).
 
-Memory per old scan: the descriptor (rings x sectors float32), its ring key, the
-pose, and the voxel-downsampled cloud as int16 centimetres (about 40 kB for KITTI
-at 0.75 m voxels).
+Memory per old scan: the descriptor (rings x sectors, kept as float16: 2.4 kB at
+20 x 60), its ring key (float64), the pose and the path length, about 3 kB in all.
+The voxel-downsampled cloud used for verification (int16 centimetres, about 25 kB
+for KITTI at 0.75 m voxels) goes to a spill file (:class:`~.verification.CloudStore`)
+and is read back only when the scan is a candidate to verify.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from flowslam.interfaces import LoopClosure
 from . import scan_context as sc
 from .candidates import CandidateIndex
 from flowslam.config.loop_closure import LoopClosureConfig
-from .verification import CompactCloud, downsample, verify
+from .verification import CloudStore, CompactCloud, downsample, verify
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +79,7 @@ class ScanContextLoopCloser:
         self._indices: list[int] = []
         self._descriptors: list[np.ndarray] = []
         self._poses: list[np.ndarray] = []
-        self._clouds: list[CompactCloud] = []
+        self._clouds = CloudStore()
         self._path_m = 0.0
         self._path_at: list[float] = []  # path length (m) travelled up to each stored scan
         self._last_accepted_at = -(10**9)
@@ -89,10 +91,14 @@ class ScanContextLoopCloser:
         return len(self._indices)
 
     def memory_bytes(self) -> int:
-        """Bytes held for the scans so far (descriptors, clouds, poses, keys)."""
+        """Bytes held in memory for the scans so far (descriptors, poses, ring keys, the
+        cloud store's index and any cloud it could not spill)."""
         desc = sum(d.nbytes for d in self._descriptors)
-        clouds = sum(c.nbytes for c in self._clouds)
-        return desc + clouds + len(self._poses) * (128 + 8 * self.config.scan_context.rings)
+        return desc + self._clouds.nbytes + len(self._poses) * (128 + 8 * self.config.scan_context.rings)
+
+    def disk_bytes(self) -> int:
+        """Bytes of verification clouds in the spill file."""
+        return self._clouds.disk_bytes
 
     def add_scan(self, index: int, points: np.ndarray, T_world_sensor: np.ndarray) -> list[LoopClosure]:
         """Add scan ``index`` (points (N,3), sensor frame, m; its current ``T_world_sensor``);
@@ -105,7 +111,7 @@ class ScanContextLoopCloser:
         desc = sc.scan_context(points, c.scan_context)
         cloud = downsample(points, c.verification, seed=index)
         self._indices.append(int(index))
-        self._descriptors.append(desc)
+        self._descriptors.append(desc.astype(np.float16))
         self._poses.append(T_world_sensor.copy())
         self._path_at.append(self._path_m)
         self._clouds.append(CompactCloud(cloud))
@@ -146,7 +152,7 @@ class ScanContextLoopCloser:
         # distances(query=j, candidates=i) gives the yaw of T_j_i; the ICP guess is T_i_j.
         yaw = -sc.shift_to_yaw(int(shifts[best]), c.scan_context.sectors)
         t0 = time.perf_counter()
-        result = verify(cloud, self._clouds[cand].points(), geometry.from_euler("z", yaw), c.verification)
+        result = verify(cloud, self._clouds.points(cand), geometry.from_euler("z", yaw), c.verification)
         self.stats.seconds_verification.append(time.perf_counter() - t0)
         if not result.accepted:
             self.stats.rejected += 1

@@ -13,13 +13,20 @@ i.e. rotation first but the **left** perturbation ``Exp(xi_l) * T`` (checked in
 ``tests/test_loop_closure.py``). :func:`open3d_information_to_covariance` converts
 it: ``xi_l = Ad(T) xi_r``, so ``Sigma_r = Ad(T)^-1 Sigma_l Ad(T)^-T``.
 
-Kept clouds are stored compactly (:class:`CompactCloud`, int16 centimetres) so that
-thousands of scans fit in memory.
+Kept clouds are stored compactly (:class:`CompactCloud`, int16 centimetres); the loop
+closer keeps one per scan in a :class:`CloudStore`, which spills them to an unlinked
+temporary file (they are read back only to verify a candidate), so that a long run
+holds a few bytes per scan in memory for them, not ~25 kB.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+import logging
+import os
+import tempfile
+from array import array
 
 import numpy as np
 
@@ -27,8 +34,11 @@ from flowslam import geometry
 
 from flowslam.config.loop_closure import VerificationConfig
 
+log = logging.getLogger(__name__)
+
 __all__ = [
     "CompactCloud",
+    "CloudStore",
     "Verification",
     "downsample",
     "verify",
@@ -60,6 +70,88 @@ class CompactCloud:
     def points(self) -> np.ndarray:
         """(N,3) float64 metres."""
         return self._cm.astype(np.float64) * _CM
+
+
+class CloudStore:
+    """Append-only store of :class:`CompactCloud` s (int16 centimetres), numbered 0, 1, ...
+
+    The clouds go to an unlinked temporary file (``tempfile.TemporaryFile`` in
+    ``directory`` or the system's temporary folder; the OS deletes it when the store is
+    closed or the process ends): written once, read back with ``pread`` only when a
+    candidate is verified. In memory: 16 bytes a cloud (offset and length). ``spill=False``,
+    or a failure to create or write the file (no space, read-only folder), keeps the
+    clouds in memory instead (logged once).
+    """
+
+    def __init__(self, spill: bool = True, directory: str | None = None):
+        self._offsets = array("q")
+        self._lengths = array("q")
+        self._memory: list[np.ndarray] = []
+        self._file = None
+        self._writable = False
+        self._end = 0
+        if spill:
+            try:
+                self._file = tempfile.TemporaryFile(prefix="flowslam-loop-clouds-", dir=directory)
+                self._writable = True
+            except OSError as error:
+                log.warning("loop closure: cannot create a spill file (%s); clouds stay in memory", error)
+
+    def __len__(self) -> int:
+        return len(self._lengths)
+
+    def append(self, cloud: CompactCloud) -> int:
+        """Store ``cloud``; returns its number."""
+        cm = np.ascontiguousarray(cloud._cm, dtype=np.int16)
+        if self._writable:
+            try:
+                written = os.pwrite(self._file.fileno(), cm.tobytes(), self._end)
+                if written != cm.nbytes:
+                    raise OSError(f"short write ({written} of {cm.nbytes} bytes)")
+            except OSError as error:
+                log.warning("loop closure: spill file failed (%s); further clouds stay in memory", error)
+                self._writable = False  # the clouds already there stay readable
+            else:
+                self._offsets.append(self._end)
+                self._lengths.append(len(cm))
+                self._end += cm.nbytes
+                return len(self._lengths) - 1
+        self._offsets.append(-1 - len(self._memory))
+        self._lengths.append(len(cm))
+        self._memory.append(cm)
+        return len(self._lengths) - 1
+
+    def points(self, number: int) -> np.ndarray:
+        """(N,3) float64 metres of cloud ``number``."""
+        offset, n = self._offsets[number], self._lengths[number]
+        if offset < 0:
+            cm = self._memory[-1 - offset]
+        else:
+            data = os.pread(self._file.fileno(), n * 6, offset)
+            cm = np.frombuffer(data, dtype=np.int16).reshape(n, 3)
+        return cm.astype(np.float64) * _CM
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held in memory (index plus the clouds not spilled)."""
+        return 16 * len(self._lengths) + sum(c.nbytes for c in self._memory)
+
+    @property
+    def disk_bytes(self) -> int:
+        """Bytes in the spill file."""
+        return self._end
+
+    def _close(self) -> None:
+        if self._file is not None:
+            try:
+                self._file.close()
+            except OSError:  # pragma: no cover
+                pass
+        self._file = None
+        self._writable = False
+
+    def __del__(self):
+        self._close()
 
 
 def downsample(points: np.ndarray, config: VerificationConfig, seed: int = 0) -> np.ndarray:
