@@ -58,6 +58,9 @@ def check_requested_options(config: PipelineConfig, frontend: Frontend, backend,
     chosen frontend or backend would ignore are an ``InputError``: a run never drops a
     user's choice without a word."""
     requested = set(requested)
+    if config.mapping.enabled and "mapping.enabled" in requested and not hasattr(backend, "add_map_factor"):
+        raise InputError(None, f"--mapping: backend {config.backend!r} takes no map factors "
+                               "(the mapping stage needs a graph backend: -b isam2)")
     if "loop_closure.enabled" in requested and not getattr(backend, "accepts_loops", False):
         raise InputError(None, f"--variant {config.variant}: backend {config.backend!r} takes no loop closures; "
                                "the variants are of backends that do (-b isam2)")

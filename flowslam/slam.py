@@ -228,12 +228,12 @@ class Slam:
         return found
 
     def _make_scan_to_map(self):
-        """The mapping stage (``mapping.enabled``; :mod:`flowslam.scan_to_map`), or None."""
-        if not self.config.mapping.enabled:
+        """The mapping stage (:mod:`flowslam.scan_to_map`) when ``mapping.enabled`` and the
+        backend takes map factors (``add_map_factor``: graph backends), else None. (A user
+        who asks for it with a backend without factors gets an error from
+        :func:`flowslam.run.check_requested_options`.)"""
+        if not self.config.mapping.enabled or not hasattr(self.backend, "add_map_factor"):
             return None
-        if not hasattr(self.backend, "add_map_factor"):
-            raise InputError(None, f"mapping.enabled: backend {self.config.backend!r} takes no map factors "
-                                   "(the mapping stage needs a graph backend: -b isam2)")
         from flowslam.scan_to_map import ScanToMap
 
         return ScanToMap(self.config.mapping)

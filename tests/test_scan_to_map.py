@@ -14,7 +14,6 @@ import pytest
 
 from flowslam import geometry
 from flowslam.config import load_config
-from flowslam.errors import InputError
 
 BIAS = geometry.make_T(geometry.from_euler("z", 0.3, degrees=True)[:3, :3], [0.02, 0.0, 0.0])
 """Injected into every odometry step (T_prev_curr @ BIAS)."""
@@ -99,12 +98,19 @@ def test_mapping_off_is_the_odometry_graph(sequence):
     np.testing.assert_allclose(off.trajectory().poses, chain, atol=1e-9)
 
 
-def test_mapping_needs_a_graph_backend():
+def test_mapping_needs_a_graph_backend(kitti_extract, tmp_path):
+    """Asked for with a backend without factors: one line, exit 2; from the config alone
+    (not asked for on the command line) the stage is simply not built."""
+    from cli_helpers import assert_one_line_error, flowslam
+
     from flowslam.slam import Slam
 
-    config = load_config(backend="odometry", **{"mapping.enabled": True})
-    with pytest.raises(InputError, match="mapping.enabled: backend 'odometry'"):
-        Slam(config)
+    proc = flowslam("run", "-f", "kiss-icp", "-b", "odometry", "--mapping", "--no-progress",
+                    "-o", tmp_path / "results", kitti_extract)
+    assert_one_line_error(proc, "--mapping: backend 'odometry' takes no map factors")
+    assert not (tmp_path / "results").exists()
+    slam = Slam(load_config(backend="odometry", **{"mapping.enabled": True}))
+    assert slam.scan_to_map is None and slam.describe()["mapping"] is None
 
 
 def test_a_moved_backend_carries_the_map(sequence):

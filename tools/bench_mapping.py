@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import pickle
 import time
 from pathlib import Path
 
@@ -52,7 +53,9 @@ def _row(name, slam, seconds, dataset) -> dict:
             "seconds": seconds}
 
 
-def bench(sequence: Path, frontends: list[str], variant: str, settings: dict) -> list[dict]:
+def bench(sequence: Path, frontends: list[str], variant: str, settings: dict, cache: Path | None = None) -> list[dict]:
+    """Rows (mapping off, on) per frontend; ``cache``: keep/reuse each frontend's recording
+    there (its seconds are then the replay's, not the frontend's)."""
     from flowslam.config import load_config
     from flowslam.datasets import open_dataset
     from flowslam.registry import make_frontend
@@ -65,10 +68,19 @@ def bench(sequence: Path, frontends: list[str], variant: str, settings: dict) ->
     for name in frontends:
         off = load_config(frontend=name, backend="isam2", variant=variant, **{"mapping.enabled": False})
         on = load_config(frontend=name, backend="isam2", variant=variant, **{"mapping.enabled": True, **settings})
-        recorder = RecordingFrontend(make_frontend(name, off), per_point=True)
-        slam, seconds = _run(off, dataset, recorder)
+        cached = cache and cache / f"{Path(sequence).name}-{name}.pkl"
+        if cached and cached.exists():  # the frontend's recorded outputs of an earlier run
+            records = pickle.loads(cached.read_bytes())
+            slam, seconds = _run(off, dataset, ReplayFrontend(name, records))
+        else:
+            recorder = RecordingFrontend(make_frontend(name, off), per_point=True)
+            slam, seconds = _run(off, dataset, recorder)
+            records = recorder.records
+            if cached:
+                cached.parent.mkdir(parents=True, exist_ok=True)
+                cached.write_bytes(pickle.dumps(records))
         rows.append(_row(f"{name} {variant}", slam, seconds, dataset))
-        slam, seconds = _run(on, dataset, ReplayFrontend(name, recorder.records))
+        slam, seconds = _run(on, dataset, ReplayFrontend(name, records))
         rows.append(_row(f"{name} {variant} + mapping", slam, seconds, dataset))
         for row in rows[-2:]:
             print(json.dumps(row), flush=True)
@@ -99,6 +111,7 @@ def main() -> None:
     ap.add_argument("--sensor", default="hdl64")
     ap.add_argument("--sim-dir", type=Path, default=Path("/tmp/flowslam-bench-mapping"))
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--cache", type=Path, help="keep each frontend's recording here and reuse it (tuning runs)")
     args = ap.parse_args()
     settings = {}
     for item in args.set:
@@ -116,7 +129,7 @@ def main() -> None:
     for seq in sequences:
         print(f"# {seq}", flush=True)
         rows += [dict(r, sequence=str(seq)) for r in bench(seq, args.frontend or ["ssf", "kiss-icp"],
-                                                           args.variant, settings)]
+                                                           args.variant, settings, args.cache)]
     print(_table(rows))
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
