@@ -49,8 +49,9 @@ def run_pipeline(
     loop_closer: LoopCloser | None = None,
     on_output: Callable[[Frame, FrontendOutput], None] | None = None,
 ) -> RunResult:
-    """Process ``frames`` with these parts and no output sinks (``on_output(frame,
-    output)`` sees each frontend output): :func:`drive` over a bare :class:`Slam`."""
-    slam = Slam(frontend=frontend, backend=backend, loop_closer=loop_closer, outputs=False,
+    """Process ``frames`` with these parts only (no mapping stage, no output sinks;
+    ``on_output(frame, output)`` sees each frontend output): :func:`drive` over a bare
+    :class:`Slam`."""
+    slam = Slam(frontend=frontend, backend=backend, loop_closer=loop_closer, scan_to_map=None, outputs=False,
                 listeners=[on_output] if on_output is not None else [])
     return drive(slam, dataset, frames, on_frame)

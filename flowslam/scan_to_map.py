@@ -168,11 +168,13 @@ class ScanToMap:
 
         c = self.config
         p = np.asarray(points, dtype=np.float64)
-        if static_mask is not None:
-            p = p[np.asarray(static_mask, dtype=bool)]
         r2 = np.einsum("ij,ij->i", p, p)
-        p = p[(r2 >= c.min_range_m**2) & (r2 <= c.max_range_m**2)]
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p)).voxel_down_sample(c.map_voxel_m)
+        keep = (r2 >= c.min_range_m**2) & (r2 <= c.max_range_m**2)
+        if static_mask is not None:
+            keep &= np.asarray(static_mask, dtype=bool)
+        # Open3D's voxel means: KISS-ICP's one-point-per-voxel downsampling here made the
+        # dt 300 drift 2x worse (0.043 % vs 0.022 %)
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p[keep])).voxel_down_sample(c.map_voxel_m)
         if len(cloud.points) >= c.min_points:
             cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4.0 * c.map_voxel_m, max_nn=10))
             cloud.orient_normals_towards_camera_location(np.zeros(3))  # the sensor: averages in the map agree

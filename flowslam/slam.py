@@ -121,7 +121,8 @@ _FROM_CONFIG = object()
 class Slam:
     """flowslam one scan at a time (module doc). ``frontend``/``backend`` instances replace
     the ones ``config`` names; ``loop_closer`` replaces the configured one (``None``: no
-    loop closure); ``outputs=False`` keeps no static map or objects log (for callers
+    loop closure); ``scan_to_map`` replaces the configured mapping stage (``None``: none);
+    ``outputs=False`` keeps no static map or objects log (for callers
     that only want poses); ``listeners`` see every ``(frame, frontend output)``,
     ``step_listeners`` every :class:`StepResult` (after its loop closures; e.g. the 3-D
     recorder of :mod:`flowslam.viz.live`)."""
@@ -135,6 +136,7 @@ class Slam:
         loop_closer: LoopCloser | None = _FROM_CONFIG,  # type: ignore[assignment]
         outputs: bool = True,
         listeners: Iterable[Listener] = (),
+        scan_to_map=_FROM_CONFIG,
         step_listeners: Iterable[Callable[["StepResult"], None]] = (),
     ):
         from flowslam.registry import make_backend, make_frontend
@@ -149,7 +151,7 @@ class Slam:
 
                 loop_closer = make_loop_closer(self.config.loop_closure)
         self.loop_closer = loop_closer
-        self.scan_to_map = self._make_scan_to_map()
+        self.scan_to_map = self._make_scan_to_map() if scan_to_map is _FROM_CONFIG else scan_to_map
         self._prev_frame: Frame | None = None
         self.map = self.objects = None
         if outputs:

@@ -79,9 +79,10 @@ def test_plugins_lists_builtins():
 
 
 def test_isam2_a_loam_equals_odometry_backend(kitti_run, kitti_extract, tmp_path):
-    """Same kiss-icp measurements, no loops: the iSAM2 optimum is the composed chain."""
+    """Same kiss-icp measurements, no loops, no mapping stage: the iSAM2 optimum is the
+    composed chain."""
     proc = flowslam("run", "--no-progress", "-f", "kiss-icp", "-b", "isam2", "--variant", "a-loam",
-                    "-o", tmp_path, kitti_extract)
+                    "--no-mapping", "-o", tmp_path, kitti_extract)
     assert proc.returncode == 0, proc.stderr
     isam = read_trajectory(tmp_path / "latest" / "trajectory_kitti.txt")
     odo = read_trajectory(kitti_run[0] / "latest" / "trajectory_kitti.txt")
@@ -89,6 +90,7 @@ def test_isam2_a_loam_equals_odometry_backend(kitti_run, kitti_extract, tmp_path
     run = json.loads((tmp_path / "latest" / "run.json").read_text())
     assert run["backend_stats"]["scans"] == 16 and run["loop_closures"] == 0
     assert run["loop_closure"] is False  # a-loam: no loop closer was built
+    assert run["mapping"] is None
 
 
 def test_output_plot_off_writes_no_top_view(kitti_extract, tmp_path):

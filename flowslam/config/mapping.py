@@ -1,8 +1,8 @@
 """Options of the scan-to-map stage (``mapping:`` in the run config), LOAM's mapping step.
 
-Each scan's static points are registered to a local voxel map of the recent static
-points, and the result goes into the factor graph beside the flow odometry (backends
-with factors only: ``isam2``, both variants). Units: metres and radians, except fields
+Each scan's static points are registered to a local map of the recent static points,
+and the result goes into the factor graph beside the flow odometry (backends with
+factors only: ``isam2``, both variants). Units: metres and radians, except fields
 whose name says ``_deg``.
 """
 
@@ -16,8 +16,10 @@ from flowslam.config.base import StrictModel
 class MappingConfig(StrictModel):
     """Local map (the recent registered scans with normals) and the registration to it."""
 
-    enabled: bool = False
-    """Register scans to the local map and add the factors (graph backends only)."""
+    enabled: bool = True
+    """Register scans to the local map and add the factors (graph backends only; on by
+    default since it pays: simulated dt 300 frames, ssf a-loam drift 0.110 -> 0.022 %,
+    APE 0.059 -> 0.013 m; docs/mapping.md)."""
     every: int = Field(1, ge=1)
     """Register every n-th scan only (the others get no map factor and are not mapped)."""
     map_voxel_m: float = Field(0.75, gt=0)
@@ -27,7 +29,7 @@ class MappingConfig(StrictModel):
     max_distance_m: float = Field(40.0, gt=0)
     """Scans whose sensor is farther than this from the newest one leave the map (the
     'last N metres') ..."""
-    max_scans: int = Field(10, ge=1)
+    max_scans: int = Field(20, ge=1)
     """... and the map holds at most this many scans."""
     max_range_m: float = Field(80.0, gt=0)
     """Scan points farther than this from the sensor are not registered nor mapped."""
