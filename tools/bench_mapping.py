@@ -25,13 +25,13 @@ import numpy as np
 import yaml
 
 
-def _run(config, dataset, frontend):
+def _run(config, dataset, frontend, frames: int | None = None):
     from flowslam.pipeline import drive
     from flowslam.slam import Slam
 
     slam = Slam(config, frontend=frontend, outputs=False)
     start = time.perf_counter()
-    result = drive(slam, dataset, range(len(dataset)), None)
+    result = drive(slam, dataset, range(min(len(dataset), frames or len(dataset))), None)
     if result.error is not None:
         raise SystemExit(f"run failed: {result.error}")
     return slam, time.perf_counter() - start
@@ -53,9 +53,10 @@ def _row(name, slam, seconds, dataset) -> dict:
             "seconds": seconds}
 
 
-def bench(sequence: Path, frontends: list[str], variant: str, settings: dict, cache: Path | None = None) -> list[dict]:
+def bench(sequence: Path, frontends: list[str], variant: str, settings: dict, cache: Path | None = None,
+          frames: int | None = None) -> list[dict]:
     """Rows (mapping off, on) per frontend; ``cache``: keep/reuse each frontend's recording
-    there (its seconds are then the replay's, not the frontend's)."""
+    there (its seconds are then the replay's, not the frontend's); ``frames``: only the first."""
     from flowslam.config import load_config
     from flowslam.datasets import open_dataset
     from flowslam.registry import make_frontend
@@ -68,19 +69,19 @@ def bench(sequence: Path, frontends: list[str], variant: str, settings: dict, ca
     for name in frontends:
         off = load_config(frontend=name, backend="isam2", variant=variant, **{"mapping.enabled": False})
         on = load_config(frontend=name, backend="isam2", variant=variant, **{"mapping.enabled": True, **settings})
-        cached = cache and cache / f"{Path(sequence).name}-{name}.pkl"
+        cached = cache and cache / f"{Path(sequence).name}-{frames or 'all'}-{name}.pkl"
         if cached and cached.exists():  # the frontend's recorded outputs of an earlier run
             records = pickle.loads(cached.read_bytes())
-            slam, seconds = _run(off, dataset, ReplayFrontend(name, records))
+            slam, seconds = _run(off, dataset, ReplayFrontend(name, records), frames)
         else:
             recorder = RecordingFrontend(make_frontend(name, off), per_point=True)
-            slam, seconds = _run(off, dataset, recorder)
+            slam, seconds = _run(off, dataset, recorder, frames)
             records = recorder.records
             if cached:
                 cached.parent.mkdir(parents=True, exist_ok=True)
                 cached.write_bytes(pickle.dumps(records))
         rows.append(_row(f"{name} {variant}", slam, seconds, dataset))
-        slam, seconds = _run(on, dataset, ReplayFrontend(name, records))
+        slam, seconds = _run(on, dataset, ReplayFrontend(name, records), frames)
         rows.append(_row(f"{name} {variant} + mapping", slam, seconds, dataset))
         for row in rows[-2:]:
             print(json.dumps(row), flush=True)
@@ -111,6 +112,7 @@ def main() -> None:
     ap.add_argument("--sensor", default="hdl64")
     ap.add_argument("--sim-dir", type=Path, default=Path("/tmp/flowslam-bench-mapping"))
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--max-frames", type=int, help="only the first N frames of each sequence")
     ap.add_argument("--cache", type=Path, help="keep each frontend's recording here and reuse it (tuning runs)")
     args = ap.parse_args()
     settings = {}
@@ -129,7 +131,8 @@ def main() -> None:
     for seq in sequences:
         print(f"# {seq}", flush=True)
         rows += [dict(r, sequence=str(seq)) for r in bench(seq, args.frontend or ["ssf", "kiss-icp"],
-                                                           args.variant, settings, args.cache)]
+                                                           args.variant, settings, args.cache,
+                                                           args.max_frames)]
     print(_table(rows))
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
