@@ -263,12 +263,9 @@ class Isam2Backend:
         """Add the constraint ``T_i_j`` (maps scan j into scan i; 6x6 covariance) between two
         added scans with a Cauchy kernel, then iterate. Returns its record (None if GTSAM refused it)."""
         i, j = int(i), int(j)
-        for k in (i, j):
-            if k not in self._known:
-                raise ValueError(f"loop {i}-{j}: scan {k} was not added")
         if i == j:
             raise ValueError(f"loop {i}-{j}: a loop needs two different scans")
-        T = self._checked_pose(T_i_j, f"loop {i}-{j}: T_i_j")
+        T = self._checked_between(f"loop {i}-{j}", i, j, T_i_j)
         frame = self._indices[-1]
         start = time.perf_counter()
         innovation = _pose_error(self.estimate(i) @ T, self.estimate(j))
@@ -283,9 +280,7 @@ class Isam2Backend:
             graph.add(gtsam.BetweenFactorPose3(_key(i), _key(j), gtsam.Pose3(T), noise))
             self._update(graph, gtsam.Values())
         except _Rejected as error:
-            self._record(frame, f"loop {i}-{j}", str(error), "loop factor dropped")
-            self._rebuild(gtsam.NonlinearFactorGraph(), gtsam.Values())
-            self._refresh_latest()
+            self._drop(frame, f"loop {i}-{j}", error, "loop factor dropped")
             return None
         iterations = 0
         for _ in range(self.config.extra_iterations_after_loop):
@@ -312,19 +307,14 @@ class Isam2Backend:
         covariance, :mod:`flowslam.scan_to_map`) with the odometry's Huber kernel and update.
         Returns False if GTSAM refused it (recorded in ``events``; the graph is unchanged)."""
         i, j = int(i), int(j)
-        for k in (i, j):
-            if k not in self._known:
-                raise ValueError(f"map factor {i}-{j}: scan {k} was not added")
-        T = self._checked_pose(T_i_j, f"map factor {i}-{j}: T_i_j")
+        T = self._checked_between(f"map factor {i}-{j}", i, j, T_i_j)
         graph = gtsam.NonlinearFactorGraph()
         graph.add(gtsam.BetweenFactorPose3(_key(i), _key(j), gtsam.Pose3(T), self._robust(self._huber, covariance)))
         slot = self._graph.size()
         try:
             self._rebuild(graph, gtsam.Values())
         except _Rejected as error:
-            self._record(j, f"map factor {i}-{j}", str(error), "map factor dropped")
-            self._rebuild(gtsam.NonlinearFactorGraph(), gtsam.Values())
-            self._refresh_latest()
+            self._drop(j, f"map factor {i}-{j}", error, "map factor dropped")
             return False
         self._kind_of_slot[slot] = "map"
         self._refresh_latest()
@@ -436,11 +426,20 @@ class Isam2Backend:
         if not geometry.is_se3(T, tol=1e-5):
             raise ValueError(f"{what} is not a finite 4x4 rigid transform")
         R = T[:3, :3]
-        if np.abs(R.T @ R - np.eye(3)).max() > 1e-12:
-            U, _, Vt = np.linalg.svd(R)
-            T = T.copy()
-            T[:3, :3] = U @ Vt
-        return T
+        return geometry.orthonormalized(T) if np.abs(R.T @ R - np.eye(3)).max() > 1e-12 else T
+
+    def _checked_between(self, what: str, i: int, j: int, T_i_j: np.ndarray) -> np.ndarray:
+        """``T_i_j`` of a factor between two added scans, checked (:meth:`_checked_pose`)."""
+        for k in (i, j):
+            if k not in self._known:
+                raise ValueError(f"{what}: scan {k} was not added")
+        return self._checked_pose(T_i_j, f"{what}: T_i_j")
+
+    def _drop(self, frame: int, what: str, error: Exception, action: str) -> None:
+        """A factor GTSAM refused: recorded (with ``action``), left out, iSAM2 rebuilt without it."""
+        self._record(frame, what, str(error), action)
+        self._rebuild(gtsam.NonlinearFactorGraph(), gtsam.Values())
+        self._refresh_latest()
 
     def _robust(self, kernel, covariance: np.ndarray):
         """Robust Gaussian noise model; GTSAM's refusal (e.g. negative variance) -> _Rejected."""
