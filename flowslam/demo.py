@@ -64,10 +64,10 @@ def run_demo(
             start = time.perf_counter()
             try:
                 if recorder is None:
-                    recorder = RecordingFrontend(make_frontend(fe_name, cfg))
+                    recorder = RecordingFrontend(make_frontend(fe_name, cfg), per_point=cfg.mapping.enabled)
                     frontend = recorder
                 else:
-                    frontend = ReplayFrontend(fe_name, recorder.records)
+                    frontend = ReplayFrontend.of(recorder)
                 callbacks = progress(f"{fe_name} + {be_name}", 0) if progress else (None, None)
                 outcome = run_sequence(
                     sequence, cfg, frontend=frontend, tag=f"{fe_name}_{be_name}",

@@ -197,7 +197,10 @@ class Slam:
         unrecorded (the backend may hold one pose more; :meth:`result` trims it)."""
         start = time.perf_counter() if started is None else started
         out = self.frontend.process(frame)
-        self.backend.add_odometry(frame.index, out.T_prev_curr, out.covariance)
+        covariance = out.covariance
+        if self.scan_to_map is not None and covariance is not None:  # the map factors lead (config doc)
+            covariance = covariance * self.config.mapping.odometry_covariance_scale
+        self.backend.add_odometry(frame.index, out.T_prev_curr, covariance)
         n_objects = len(self.objects.objects) if self.objects is not None else 0
         for listener in self.listeners:
             listener(frame, out)

@@ -341,7 +341,7 @@ class ObjectsStage:
         if c.motion_evidence.enabled:
             movers, seen = geometric_movers(prev, state.frame.points, T_ego, c.motion_evidence)
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
-                                 cKDTree(state.refined.target_points), movers, seen)
+                                 state.refined.target_tree or cKDTree(state.refined.target_points), movers, seen)
         accepted = np.array([o["accepted"] for o in objects.objects] + [False])  # [-1] -> False
         state.flow, state.static = objects.flow, ~objects.dynamic
         state.instance = np.where(accepted[objects.instance], objects.instance, -1)

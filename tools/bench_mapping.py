@@ -71,17 +71,17 @@ def bench(sequence: Path, frontends: list[str], variant: str, settings: dict, ca
         on = load_config(frontend=name, backend="isam2", variant=variant, **{"mapping.enabled": True, **settings})
         cached = cache and cache / f"{Path(sequence).name}-{frames or 'all'}-{name}.pkl"
         if cached and cached.exists():  # the frontend's recorded outputs of an earlier run
-            records = pickle.loads(cached.read_bytes())
-            slam, seconds = _run(off, dataset, ReplayFrontend(name, records), frames)
+            replay = pickle.loads(cached.read_bytes())
+            slam, seconds = _run(off, dataset, replay, frames)
         else:
             recorder = RecordingFrontend(make_frontend(name, off), per_point=True)
             slam, seconds = _run(off, dataset, recorder, frames)
-            records = recorder.records
+            replay = ReplayFrontend.of(recorder)
             if cached:
                 cached.parent.mkdir(parents=True, exist_ok=True)
-                cached.write_bytes(pickle.dumps(records))
+                cached.write_bytes(pickle.dumps(replay))
         rows.append(_row(f"{name} {variant}", slam, seconds, dataset))
-        slam, seconds = _run(on, dataset, ReplayFrontend(name, records), frames)
+        slam, seconds = _run(on, dataset, replay, frames)
         rows.append(_row(f"{name} {variant} + mapping", slam, seconds, dataset))
         for row in rows[-2:]:
             print(json.dumps(row), flush=True)

@@ -63,7 +63,7 @@ def run_cell(sequence: Path, frontend: str, cell_dir: Path, config: PipelineConf
     rows = {}
     start = time.perf_counter()
     cfg = _variant_config(config, frontend, "a-loam")
-    recorder = RecordingFrontend(make_frontend(frontend, cfg))
+    recorder = RecordingFrontend(make_frontend(frontend, cfg), per_point=cfg.mapping.enabled)
     on_start, on_frame = progress(f"{frontend} a-loam") if progress else (None, None)
     outcome = run_sequence(sequence, cfg, frontend=recorder, run_dir=cell_dir / "a-loam",
                            on_start=on_start, on_frame=on_frame)
@@ -72,7 +72,7 @@ def run_cell(sequence: Path, frontend: str, cell_dir: Path, config: PipelineConf
     if outcome.result.indices:
         cfg = _variant_config(config, frontend, "s-loam")
         on_start, on_frame = progress(f"{frontend} s-loam") if progress else (None, None)
-        replay = run_sequence(sequence, cfg, frontend=ReplayFrontend(frontend, recorder.records),
+        replay = run_sequence(sequence, cfg, frontend=ReplayFrontend.of(recorder),
                               run_dir=cell_dir / "s-loam", on_start=on_start, on_frame=on_frame)
         replayed = np.asarray(replay.result.seconds_per_frame)
         n = min(len(replayed), len(frontend_pass))

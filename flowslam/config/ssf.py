@@ -73,6 +73,11 @@ class FlowRefinementConfig(StrictModel):
     """At most this many downsampled static source points (a seeded random subset)."""
     normal_radius_m: float = Field(1.2, gt=0)
     """Neighbourhood radius (at most 20 points) of the target normals."""
+    max_surface_variation: float = Field(0.02, gt=0, le=1)
+    """Target points whose neighbourhood is not a plane are left out: surface variation
+    ``l0 / (l0 + l1 + l2)`` (eigenvalues of the neighbourhood's covariance, 0 for a plane,
+    1/3 at most) above this. Their normals are tilted (curbs, the feet of walls, cars) and,
+    with the in-plane offsets of ring sampling, biased every step (docs/mapping.md)."""
     dynamic_exclusion_m: float = Field(0.6, ge=0)
     """Target points this close to a predicted dynamic landing point are left out."""
     min_fitness: float = Field(0.3, ge=0, le=1)
