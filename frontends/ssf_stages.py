@@ -107,11 +107,13 @@ class NetworkStage:
     def __init__(self, config: SsfConfig):
         import torch
 
+        from flowslam.sceneflow.network.model import default_cpu_threads
         from flowslam.sceneflow.network.weights import build_model, load_weights, shipped_weights
 
         self.options = c = config.network
-        if c.num_threads:
-            torch.set_num_threads(c.num_threads)
+        threads = c.num_threads or (default_cpu_threads() if c.device == "cpu" else None)
+        if threads:
+            torch.set_num_threads(threads)
         payload = load_weights(c.weights or shipped_weights(), require_hash=c.weights is None)
         self.device = torch.device(c.device)
         self.model = build_model(payload).to(self.device)
@@ -123,10 +125,21 @@ class NetworkStage:
         self.num_frames = self.model.config.num_frames
 
     def run(self, state: PairState) -> None:
-        import torch
-
         from flowslam.sceneflow.network.model import full_flow
-        from flowslam.sceneflow.network.propagate import propagate
+        from flowslam.sceneflow.network.samples import transform_points_torch
+
+        sample = self._sample(state)
+        values = self._predict(sample, state.prev.points)
+        prev = state.prev.points
+        compensated = transform_points_torch(sample.T_new_src, prev)  # scan k-1 moved by the prior
+        state.flow = full_flow(prev, compensated, values[:, :3])
+        state.dynamic_prob = 1.0 / (1.0 + np.exp(-values[:, 3]))
+        state.static = state.dynamic_prob < self.options.dynamic_threshold
+
+    def _sample(self, state: PairState):
+        """The network input: the last T scans (the oldest repeated at the start of a
+        sequence), sub-sampled, moved into scan k's sensor frame with the frontend's poses
+        and the constant-velocity guess of scan k."""
         from flowslam.sceneflow.network.samples import frames_to_sample
 
         frames, poses = list(state.history), list(state.history_poses)
@@ -135,19 +148,21 @@ class NetworkStage:
             poses.insert(0, poses[0])
         T_new_world = geometry.inv(state.T_world_guess)
         priors = [T_new_world @ T for T in poses] + [np.eye(4)]
-        sample = frames_to_sample(frames + [state.frame], priors, self.options.max_points)
-        prev = state.prev
-        with torch.no_grad():
+        return frames_to_sample(frames + [state.frame], priors, self.options.max_points)
+
+    def _predict(self, sample, points: np.ndarray) -> np.ndarray:
+        """(N,4) float64 for all N ``points`` of scan k-1: residual flow (m, sensor frame
+        k) and dynamic logit, predicted on the sample and propagated to every point."""
+        import torch
+
+        from flowslam.sceneflow.network.propagate import propagate
+
+        with torch.inference_mode():
             out = self.model({"points": [[torch.from_numpy(p).to(self.device) for p in sample.points]]})
-            values = propagate(
-                torch.from_numpy(prev.points).to(self.device).float(),
-                torch.from_numpy(sample.source_index).to(self.device),
-                torch.cat([out["flow"].float(), out["dynamic_logit"].float()[:, None]], dim=1),
-            ).cpu().numpy().astype(np.float64)
-        compensated = geometry.transform_points(sample.T_new_src, prev.points)
-        state.flow = full_flow(prev.points, compensated, values[:, :3])
-        state.dynamic_prob = 1.0 / (1.0 + np.exp(-values[:, 3]))
-        state.static = state.dynamic_prob < self.options.dynamic_threshold
+            values = torch.cat([out["flow"].float(), out["dynamic_logit"].float()[:, None]], dim=1)
+            values = propagate(torch.from_numpy(points).to(self.device).float(),
+                               torch.from_numpy(sample.source_index).to(self.device), values)
+        return values.cpu().numpy().astype(np.float64)
 
 
 class PoseStartStage:

@@ -9,14 +9,17 @@ would run (sub-sample the newest scan, gather the five samples, forward, propaga
 older scans keep the sample drawn when they arrived), BatchNorms folded, untrained
 weights (timing does not depend on them): median and minimum wall time of ``--runs``
 and the median process CPU time (with one thread: the time on a dedicated core).
-Also: chunked vs. sequential selective scan, and parameters / size of each preset.
+Also: where the time of one frame goes (``--parts``: pillar indexing, PointNet pooling, stem +
+U-Net, decoder inputs, FlowSSM decoder, propagation; medians of ``--runs``), chunked vs.
+sequential selective scan, and parameters / size of each preset.
 
-    python tools/bench_sceneflow.py [--threads 2] [--runs 9] [--preset tiny] [--no-tune-allocator]
+    python tools/bench_sceneflow.py [--threads 2] [--runs 9] [--preset tiny] [--parts] [--no-tune-allocator]
 
 The machine's load average is printed: on a shared machine the timings are upper bounds.
 With two threads on a *loaded* machine, OpenMP's spinning threads wait a scheduler slice
 (~7 ms) at every parallel op and a forward pass can take seconds: run with
-``OMP_WAIT_POLICY=PASSIVE`` (or ``--threads 1``) there. The glibc allocator is tuned
+``OMP_WAIT_POLICY=PASSIVE`` (or ``--threads 1``) there; under PASSIVE the ``ssf`` frontend
+uses one thread by default (``default_cpu_threads``). The glibc allocator is tuned
 (``tune_cpu_allocator``) unless ``--no-tune-allocator``.
 """
 
@@ -100,6 +103,35 @@ def bench_model(preset: str, frames: list[np.ndarray], samples: int, runs: int) 
     }
 
 
+def bench_parts(preset: str, frames: list[np.ndarray], samples: int, runs: int) -> dict[str, float]:
+    """Median wall time (ms) of each part of one frame at ``samples`` points per frame."""
+    from flowslam.sceneflow.network.voxelize import index_points
+
+    net = SceneFlowNet(ModelConfig.preset(preset, num_frames=len(frames))).fold_batchnorm()
+    gen = torch.Generator().manual_seed(0)
+    full = [torch.from_numpy(f.astype(np.float32)) for f in frames]
+    idx = [random_subsample(len(f), samples, gen) for f in full]
+    points = [[f[i] for f, i in zip(full, idx)]]
+    src = len(frames) - 2
+    with torch.inference_mode():
+        index, _ = index_points(points, net.grid)
+        dense, point_feats, raw = net.pillars(index)
+        feats = net.backbone(net.stem(dense))
+        sel = torch.nonzero(index.time == src).squeeze(1)
+        inputs = net._source_inputs(index, sel, dense, feats, point_feats, raw)
+        out = net(points)
+        values = torch.cat([out["flow"], out["dynamic_logit"].unsqueeze(1)], 1)
+        parts = {
+            "pillar index": lambda: index_points(points, net.grid),
+            "PointNet + pooling": lambda: net.pillars(index),
+            "stem + U-Net": lambda: net.backbone(net.stem(dense)),
+            "decoder inputs": lambda: net._source_inputs(index, sel, dense, feats, point_feats, raw),
+            "FlowSSM decoder": lambda: net.decoder(*inputs[:2], index.batch[sel], inputs[2], index.batch_size),
+            "propagation": lambda: propagate(full[src], idx[src], values),
+        }
+        return {name: _timeit(fn, runs)[0] for name, fn in parts.items()}
+
+
 def bench_scan(runs: int) -> list[str]:
     lines = []
     g = torch.Generator().manual_seed(0)
@@ -128,6 +160,7 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=9)
     ap.add_argument("--preset", default="tiny")
     ap.add_argument("--frames", type=int, default=5)
+    ap.add_argument("--parts", action="store_true", help="also time each part of a frame (16,384 points/frame)")
     ap.add_argument("--no-tune-allocator", action="store_true", help="keep glibc's default malloc thresholds")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -152,6 +185,11 @@ def main() -> None:
               f"(min {r['pipeline_min_ms']:.1f}, CPU {r['pipeline_cpu_ms']:.1f}); forward only median "
               f"{r['forward_median_ms']:.1f} ms (min {r['forward_min_ms']:.1f}, CPU {r['forward_cpu_ms']:.1f}); "
               f"{r['flow_rows']} flow rows")
+
+    if args.parts:
+        parts = bench_parts(args.preset, frames, 16384, args.runs)
+        print("  parts of one frame @ 16384 pts/frame (median ms): "
+              + ", ".join(f"{k} {v:.1f}" for k, v in parts.items()))
 
     print("selective scan, chunk 128:")
     for line in bench_scan(args.runs):

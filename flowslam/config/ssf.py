@@ -38,7 +38,9 @@ class NetworkStageConfig(StrictModel):
     device: str = "cpu"
     """torch device of the network ('cpu', 'cuda', 'cuda:1', ...)."""
     num_threads: int | None = Field(None, ge=1)
-    """torch intra-op threads (None: torch's default)."""
+    """torch intra-op threads. None: 1 when ``OMP_WAIT_POLICY=PASSIVE`` (the CLI's default;
+    a second thread gains nothing there, measured), else torch's default
+    (``flowslam.sceneflow.network.model.default_cpu_threads``)."""
 
 
 class PoseStartConfig(StrictModel):

@@ -23,6 +23,14 @@ multiplies it in; a 1x1 projection plus a (projected) residual gives the output.
 depthwise spatial / temporal branches and gate (see ``STDCB``). ``fold_bn_into`` folds
 the eval-mode BatchNorms into the preceding layers for inference.
 
+Fused inference (``fusable``): with folded BatchNorms, float32 CPU tensors and no
+autograd, each convolution / linear layer runs together with the activation after it
+(LeakyReLU, the gate's sigmoid, the residual add) as one oneDNN kernel
+(``torch.ops.mkldnn._convolution_pointwise`` / ``_linear_pointwise``, the kernels
+``torch.compile`` uses on CPU): one pass over the activations instead of two, same
+arithmetic (LeakyReLU and the add bit-identical, the sigmoid to 1e-7). Elsewhere, or
+where this torch build lacks the ops, the plain layers run.
+
 U-Net: ``levels`` resolutions (stride 1, 2, 4, ...), encoder level i runs
 ``encoder_depths[i]`` STDCBs then a 2x2 stride-2 convolution down (per timestep, time
 is never pooled); the decoder goes up with 2x2 stride-2 transposed convolutions,
@@ -33,19 +41,89 @@ the time axis; the model picks the timesteps it needs (see ``model.py``).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = ["TemporalConv", "STDCB", "STUNet", "spatial_conv", "fold_bn_into"]
+__all__ = ["TemporalConv", "STDCB", "STUNet", "spatial_conv", "fold_bn_into", "fusable"]
+
+PostOp = tuple[str, list]
+"""An activation fused into a oneDNN kernel: its attribute name and scalars."""
+LEAKY: PostOp = ("leaky_relu", [0.1])
+IDENTITY: PostOp = ("none", [])
+SIGMOID: PostOp = ("sigmoid", [])
 
 
-def spatial_conv(x: Tensor, conv: nn.Module) -> Tensor:
-    """Apply a 2D conv (or transposed conv) to every timestep of (B, T, H, W, C)."""
+def _has_fused_ops() -> bool:
+    """Whether this torch build has oneDNN and its fused conv/linear + post-op kernels."""
+    try:
+        return bool(torch.backends.mkldnn.is_available()) and all(
+            hasattr(torch.ops.mkldnn, op) for op in ("_convolution_pointwise", "_linear_pointwise")
+        )
+    except (AttributeError, RuntimeError):
+        return False
+
+
+_FUSED_OPS = _has_fused_ops()
+
+
+def fusable(x: Tensor) -> bool:
+    """Whether the fused oneDNN kernels may run on ``x``: float32 CPU inference (no autograd)."""
+    return _FUSED_OPS and x.device.type == "cpu" and x.dtype == torch.float32 and not torch.is_grad_enabled()
+
+
+def _post(y: Tensor, post: PostOp | None) -> Tensor:
+    """The activation ``post`` applied in place (the unfused path)."""
+    if post is None or post[0] == "none":
+        return y
+    if post[0] == "leaky_relu":
+        return F.leaky_relu_(y, *post[1])
+    if post[0] == "sigmoid":
+        return torch.sigmoid_(y)
+    raise ValueError(f"unknown post-op {post[0]!r}")
+
+
+def linear(x: Tensor, layer: nn.Linear, post: PostOp | None = None) -> Tensor:
+    """``layer`` on the channel axis of (..., C), then ``post``; one oneDNN kernel when
+    ``post`` is given and ``fusable(x)``."""
+    if post is None or not fusable(x):
+        return _post(layer(x), post)
+    y = torch.ops.mkldnn._linear_pointwise(x.reshape(-1, x.shape[-1]), layer.weight, layer.bias, post[0], post[1], "")
+    return y.view(x.shape[:-1] + (y.shape[-1],))
+
+
+def linear_add(x: Tensor, layer: nn.Linear, other: Tensor) -> Tensor:
+    """``layer(x) + other`` on the channel axis, one oneDNN kernel when ``fusable(x)``."""
+    if not fusable(x):
+        return layer(x).add_(other)
+    flat = x.reshape(-1, x.shape[-1])
+    y = torch.ops.mkldnn._linear_pointwise.binary(
+        flat, other.reshape(flat.shape[0], -1), layer.weight, layer.bias, "add"
+    )
+    return y.view(x.shape[:-1] + (y.shape[-1],))
+
+
+def _conv2d(x: Tensor, weight: Tensor, bias: Tensor | None, stride, padding, dilation, groups: int,
+            post: PostOp | None) -> Tensor:
+    """``F.conv2d`` then ``post``; one oneDNN kernel when ``post`` is given and ``fusable(x)``."""
+    if post is None or not fusable(x):
+        return _post(F.conv2d(x, weight, bias, stride, padding, dilation, groups), post)
+    return torch.ops.mkldnn._convolution_pointwise(
+        x, weight, bias, list(padding), list(stride), list(dilation), groups, post[0], post[1], ""
+    )
+
+
+def spatial_conv(x: Tensor, conv: nn.Module, post: PostOp | None = None) -> Tensor:
+    """Apply a 2D conv (or transposed conv) to every timestep of (B, T, H, W, C), then
+    ``post`` (fused into an ``nn.Conv2d``'s kernel where possible)."""
     B, T, H, W, C = x.shape
-    y = conv(x.reshape(B * T, H, W, C).permute(0, 3, 1, 2))  # channels-last view, no copy
+    view = x.reshape(B * T, H, W, C).permute(0, 3, 1, 2)  # channels-last view, no copy
+    if isinstance(conv, nn.Conv2d) and conv.padding_mode == "zeros":
+        y = _conv2d(view, conv.weight, conv.bias, conv.stride, conv.padding, conv.dilation, conv.groups, post)
+    else:
+        y = _post(conv(view), post)
     return y.permute(0, 2, 3, 1).reshape(B, T, y.shape[2], y.shape[3], y.shape[1])
 
 
@@ -72,15 +150,20 @@ class TemporalConv(nn.Module):
         bound = 1.0 / math.sqrt(fan_in)
         nn.init.uniform_(self.weight, -bound, bound)
 
-    def forward(self, x: Tensor) -> Tensor:
+    def forward(self, x: Tensor, post: PostOp | None = None) -> Tensor:
+        """(B, T, H, W, cin) -> (B, T, H, W, cout), then the activation ``post`` (fused
+        into the depthwise kernel where possible)."""
         d, T = self.dilation, x.shape[1]
         w = self.weight
         if self.depthwise:  # a depthwise (3, 1) conv over the (T, H*W) image of each sample
             B, T, H, W, C = x.shape
             view = x.reshape(B, T, H * W, C).permute(0, 3, 1, 2)  # channels-last view, no copy
             k = w.t().reshape(C, 1, 3, 1)
-            y = F.conv2d(view, k, self.bias, padding=(d, 0), dilation=(d, 1), groups=C)
+            y = _conv2d(view, k, self.bias, (1, 1), (d, 0), (d, 1), C, post)
             return y.permute(0, 2, 3, 1).reshape(B, T, H, W, C)
+        return _post(self._dense(x, w, d, T), post)
+
+    def _dense(self, x: Tensor, w: Tensor, d: int, T: int) -> Tensor:
         cout = w.shape[1]
         # one matmul for the three taps: (..., 3, cout), tap-major like the weight
         y = F.linear(x, w.reshape(3 * cout, -1)).view(x.shape[:-1] + (3, cout))
@@ -137,6 +220,13 @@ class _NormAct(nn.Module):
         y = x if self.folded else self.norm(x.reshape(-1, x.shape[-1])).view(x.shape)
         return F.leaky_relu(y, 0.1, inplace=True) if self.act else y
 
+    def after(self, layer: Callable[[PostOp | None], Tensor], fuse: bool) -> Tensor:
+        """``self(layer(None))``; with ``fuse`` and a folded norm the activation is handed
+        to the layer as its post-op instead (``layer(post)``: one fused kernel)."""
+        if fuse and self.folded:
+            return layer(LEAKY if self.act else IDENTITY)
+        return self(layer(None))
+
 
 class STDCB(nn.Module):
     """Spatio-temporal Deep Coupling Block on (B, T, H, W, cin) -> (B, T, H, W, cout).
@@ -192,18 +282,22 @@ class STDCB(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         B = x.shape[0]
         inplace = not torch.is_grad_enabled()  # inference: reuse buffers, no autograd to upset
-        h = self.norm_e(self.expand(x)) if self.separable else x
-        s = self.norm_s(spatial_conv(h, self.spatial))
-        loc = self.norm_l(self.local_t(h))
-        cross = self.norm_c(self.cross_t(h))
+        fuse = fusable(x) and self.norm_s.folded  # layer + activation as one kernel (folded, CPU inference)
+        h = self.norm_e.after(lambda post: linear(x, self.expand, post), fuse) if self.separable else x
+        s = self.norm_s.after(lambda post: spatial_conv(h, self.spatial, post), fuse)
+        loc = self.norm_l.after(lambda post: self.local_t(h, post), fuse)
+        cross = self.norm_c.after(lambda post: self.cross_t(h, post), fuse)
         # Soft Feature Selection: per-sample, per-channel softmax over the three branches
         desc = s.mean((1, 2, 3)) + loc.mean((1, 2, 3)) + cross.mean((1, 2, 3))  # (B, mid)
         w = torch.softmax(self.sfs(desc).view(B, 3, 1, 1, 1, self.mid), 1)
         if inplace:
             fused = s.mul_(w[:, 0]).addcmul_(loc, w[:, 1]).addcmul_(cross, w[:, 2])
-            fused.mul_(torch.sigmoid_(self.gate(fused)))
-            out = self.norm_o(self.proj(fused))
-            out.add_(self.shortcut(x))
+            fused.mul_(self.gate(fused, SIGMOID) if fuse else torch.sigmoid_(self.gate(fused)))
+            if fuse:  # the projection and the residual add in one kernel
+                out = linear_add(fused, self.proj, self.shortcut(x))
+            else:
+                out = self.norm_o(self.proj(fused))
+                out.add_(self.shortcut(x))
         else:
             fused = torch.addcmul(torch.addcmul(s * w[:, 0], loc, w[:, 1]), cross, w[:, 2])
             # Temporal Gated Block: a sigmoid gate from the fused features' temporal context
@@ -222,7 +316,7 @@ class _Down(nn.Module):
         self.norm.fold(self.conv)
 
     def forward(self, x: Tensor) -> Tensor:
-        return self.norm(spatial_conv(x, self.conv))
+        return self.norm.after(lambda post: spatial_conv(x, self.conv, post), fusable(x))
 
 
 class _Up(nn.Module):

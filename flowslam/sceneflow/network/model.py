@@ -53,7 +53,9 @@ from flowslam.sceneflow.network.backbone import STUNet, _Down
 from flowslam.sceneflow.network.flowssm import FlowSSMDecoder, bilinear_gather, morton_code
 from flowslam.sceneflow.network.voxelize import BEVGrid, PillarEncoder, index_points
 
-__all__ = ["ModelConfig", "SceneFlowNet", "full_flow", "tune_cpu_allocator", "OUTSIDE_LOGIT", "PRESETS"]
+__all__ = [
+    "ModelConfig", "SceneFlowNet", "full_flow", "tune_cpu_allocator", "default_cpu_threads", "OUTSIDE_LOGIT", "PRESETS",
+]
 
 OUTSIDE_LOGIT = -20.0
 """Dynamic logit given to source points outside the grid (they get zero residual flow)."""
@@ -285,6 +287,24 @@ def tune_cpu_allocator(mmap_threshold: int = 256 << 20, trim_threshold: int = 51
         return bool(ok and libc.mallopt(M_TRIM_THRESHOLD, int(trim_threshold)) == 1)
     except (OSError, AttributeError):
         return False
+
+
+def default_cpu_threads() -> int | None:
+    """Intra-op threads for CPU inference when the user set none: 1 under passive OpenMP
+    waiting (``OMP_WAIT_POLICY=PASSIVE``, what the CLI sets unless the user set it), else
+    None (keep torch's default).
+
+    With passive waiting every parallel op wakes a sleeping worker; the network runs
+    ~1,000 ops per scan, so a second thread gains nothing: measured on the 2-core
+    machine, one thread vs two (KITTI scan, 16,384 points/frame) 113 vs 131 ms idle
+    (``docs/sceneflow_evaluation.md``) and 133 vs 139 ms forward with other jobs
+    running (load ~5); one thread also leaves the other core to the rest of the frame.
+    With active (spinning) waiting on an idle machine two threads are faster (82 ms),
+    so then torch's default is kept.
+    """
+    import os
+
+    return 1 if os.environ.get("OMP_WAIT_POLICY", "").strip().upper() == "PASSIVE" else None
 
 
 def full_flow(points_src: Tensor, points_src_compensated: Tensor, residual: Tensor) -> Tensor:
