@@ -163,6 +163,7 @@ class FlowToPose:
         static_mask: np.ndarray | None = None,
         weights: np.ndarray | None = None,
         dt: float | None = None,
+        geometry_points: np.ndarray | None = None,
     ) -> FlowPoseEstimate:
         """Motion between scan k-1 and scan k from the flow of scan k-1's points.
 
@@ -182,6 +183,10 @@ class FlowToPose:
         dt:
             Optional time between the scans (s), used only to scale the
             constant-velocity prediction.
+        geometry_points:
+            Optional (M,3) points of scan k-1 whose geometry the degeneracy check judges
+            (default: the usable points): the static scene, where the pairs are a subset
+            chosen for another reason (the ``ssf`` refinement's planar partners).
         """
         start = time.perf_counter()
         cfg = self.config
@@ -234,8 +239,9 @@ class FlowToPose:
                 n, dt, stats, start,
             )
         if cfg.check_geometry:
-            stride = -(-len(src) // GEOMETRY_SAMPLES)
-            cond_g = geometry_condition(src[::stride], cfg.geometry_voxel_size)
+            scene = src if geometry_points is None else np.asarray(geometry_points, dtype=np.float64)
+            stride = -(-len(scene) // GEOMETRY_SAMPLES)
+            cond_g = geometry_condition(scene[::stride], cfg.geometry_voxel_size)
             stats["condition_geometry"] = cond_g
             if not cond_g <= cfg.max_condition:
                 return self._fall_back(

@@ -30,12 +30,28 @@ from flowslam.config import FlowOdometryConfig
 from flowslam.flow_odometry import FlowToPose
 from flowslam.interfaces import FrontendOutput
 
-__all__ = ["GroundTruthFlowFrontend", "make_gt_frontend", "make_gt_flow_frontend", "NO_FLOW_MESSAGE"]
+__all__ = ["GroundTruthFlowFrontend", "exact_flow_options", "make_gt_frontend", "make_gt_flow_frontend", "NO_FLOW_MESSAGE"]
 
 NO_FLOW_MESSAGE = (
     "has no ground-truth flow; the gt/gt-flow frontends need a dataset with flow labels "
     "(simulated sequences, Argoverse 2 with flow_labels)"
 )
+
+
+EXACT_FLOOR_FACTOR = 0.1
+"""The covariance floor of ``flow_odometry`` stands for model errors that GT flow does not
+have (timing, deskew, calibration): the GT frontends use this share of its sigmas (not
+less: Argoverse 2's flow labels are exact only to their float16 rounding, ~0.8 mm)."""
+
+
+def exact_flow_options(options: FlowOdometryConfig) -> FlowOdometryConfig:
+    """``options`` with the covariance floor for exact (GT) flow, whose steps are exact to
+    a millimetre or better, so that a map factor or a loop does not pull them (floor
+    0.01 deg / 5 mm -> 0.001 deg / 0.5 mm with the defaults)."""
+    return options.model_copy(update={
+        "min_rotation_std_deg": options.min_rotation_std_deg * EXACT_FLOOR_FACTOR,
+        "min_translation_std_m": options.min_translation_std_m * EXACT_FLOOR_FACTOR,
+    })
 
 
 class GroundTruthFlowFrontend:
@@ -47,7 +63,7 @@ class GroundTruthFlowFrontend:
     def __init__(self, use_labels: bool, options: FlowOdometryConfig | None = None):
         self.use_labels = use_labels
         self.name = "gt" if use_labels else "gt-flow"
-        self.odometry = FlowToPose(options)
+        self.odometry = FlowToPose(exact_flow_options(options or FlowOdometryConfig()))
         self._prev: Frame | None = None
         self._seen_flow = False
 

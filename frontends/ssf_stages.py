@@ -215,7 +215,8 @@ class FlowToPoseStage:
 
     def _estimate(self, state: PairState) -> None:
         if state.refinement_accepted:
-            state.estimate = self.flow_to_pose.estimate(state.refined.points, state.refined.flow, dt=state.dt)
+            state.estimate = self.flow_to_pose.estimate(state.refined.points, state.refined.flow, dt=state.dt,
+                                                        geometry_points=state.refined.scene_points)
         else:
             state.estimate = self.flow_to_pose.estimate(state.prev.points, state.flow, static_mask=state.static,
                                                         dt=state.dt)
@@ -260,7 +261,7 @@ class MotionRecoveryStage:
             record["outcome"] = "off"
         else:
             record.update(self._recover(state))
-            if record["outcome"] == "recovered":
+            if record["outcome"] in ("recovered", "kept"):  # kept: the global start confirmed it
                 self.detector.remember(self._evidence(state))
         state.stats["recovery"] = record
 

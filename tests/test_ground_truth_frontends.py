@@ -17,7 +17,13 @@ from flowslam.frame import Frame
 from flowslam.errors import InputError
 from flowslam.config import FlowOdometryConfig
 from flowslam.fallbacks import summarize_fallbacks
-from flowslam.frontends.ground_truth import GroundTruthFlowFrontend, make_gt_flow_frontend, make_gt_frontend
+from flowslam.frontends.ground_truth import (
+    EXACT_FLOOR_FACTOR,
+    GroundTruthFlowFrontend,
+    exact_flow_options,
+    make_gt_flow_frontend,
+    make_gt_frontend,
+)
 from flowslam.registry import make_frontend
 
 from test_flow_odometry import street_scene
@@ -71,9 +77,11 @@ def test_av2_ego_motion(av2, av2_log: Path, name: str):
         assert out.static_mask is None and out.stats["n_static"] == len(f0.points)
     # the 2037 moving points are never inliers, so at most the static ones are
     assert out.stats["inliers"] <= static.sum()
-    # a realistic covariance: the floor (5 mm, 0.01 deg), not micrometres
+    # a realistic covariance: the floor for exact flow (0.5 mm, 0.001 deg; the labels' own
+    # rounding is 0.82 mm), not micrometres, and well below the estimated flows' (5 mm, 0.01 deg)
     std = np.sqrt(np.diag(out.covariance))
-    assert np.all(std[3:] >= 0.005) and np.all(std[:3] >= np.deg2rad(0.01))
+    assert np.all(std[3:] >= 0.0005) and np.all(std[:3] >= np.deg2rad(0.001))
+    assert np.all(std[3:] < 0.002) and np.all(std[:3] < np.deg2rad(0.005))
 
 
 def test_dataset_without_flow_is_a_clear_error(kitti_extract: Path):
@@ -178,8 +186,11 @@ def test_first_pair_without_flow_is_an_error_and_missing_labels_too():
 def test_factories_take_the_flow_odometry_section():
     custom = FlowOdometryConfig(min_static_points=100000)
     frontend = make_gt_frontend(SimpleNamespace(flow_odometry=custom))
-    assert frontend.odometry.config is custom
+    # the section's options, with the covariance floor for exact flow
+    assert frontend.odometry.config == exact_flow_options(custom)
+    assert frontend.odometry.config.min_static_points == 100000
+    assert frontend.odometry.config.min_translation_std_m == custom.min_translation_std_m * EXACT_FLOOR_FACTOR
     frames, _ = synthetic_sequence(n_frames=2)
     frontend.process(frames[0])
     assert frontend.process(frames[1]).stats["fallback_code"] == "few_points"
-    assert make_gt_flow_frontend(object()).odometry.config == FlowOdometryConfig()
+    assert make_gt_flow_frontend(object()).odometry.config == exact_flow_options(FlowOdometryConfig())

@@ -60,12 +60,19 @@ def test_detector_flags_a_wrong_start_and_not_a_right_one(kitti):
     assert detector.check(right) == []
     assert scores(T_right) > 0.7
 
-    for yaw_deg, shift_m in ((40.0, 0.0), (10.0, 0.5)):  # ICP stays near the wrong start
-        T_wrong_start = T_ref @ geometry.make_T(geometry.from_euler("z", yaw_deg, degrees=True)[:3, :3],
-                                                [shift_m, 0.0, 0.0])
-        wrong, T_wrong = _refined_step(dataset, 5, T_wrong_start)
+    def start(yaw_deg, shift_m):
+        return T_ref @ geometry.make_T(geometry.from_euler("z", yaw_deg, degrees=True)[:3, :3], [shift_m, 0.0, 0.0])
+
+    for yaw_deg, shift_m in ((40.0, 0.0), (15.0, 0.5)):  # ICP stays near the wrong start
+        wrong, T_wrong = _refined_step(dataset, 5, start(yaw_deg, shift_m))
+        assert np.degrees(geometry.rotation_angle(geometry.inv(T_ref) @ T_wrong)) > 5.0
         assert detector.check(wrong), (yaw_deg, wrong)
         assert scores(T_wrong) < scores(T_right) - 0.2  # the evidence prefers the right solution
+    # 10 deg / 0.5 m off: the refinement (planar target points) finds the right motion itself
+    recovered, T_recovered = _refined_step(dataset, 5, start(10.0, 0.5))
+    assert np.degrees(geometry.rotation_angle(geometry.inv(T_ref) @ T_recovered)) < 0.5
+    assert detector.check(recovered) == []
+    assert scores(T_recovered) > scores(T_right) - 0.02
 
 
 def test_prior_disagreement_is_a_cue():

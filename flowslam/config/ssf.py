@@ -215,7 +215,7 @@ class MotionRecoveryConfig(StrictModel):
     """... and more than this share."""
     history: int = Field(10, ge=1)
     """Good steps whose fitness and dynamic share make the medians above."""
-    min_history: int = Field(3, ge=1)
+    min_history: int = Field(2, ge=1)
     """The relative cues wait for this many good steps."""
     max_prior_rotation_deg: float = Field(10.0, gt=0)
     """Cue ``prior_disagreement``: the measurement differs from the constant-velocity

@@ -93,7 +93,8 @@ class MotionFaultDetector:
         return [cue for cue, on in fired.items() if on]
 
     def remember(self, e: StepEvidence) -> None:
-        """A good step (or a recovered one) joins the history of the relative cues."""
+        """A good step (or one the re-initialisation recovered or confirmed) joins the
+        history of the relative cues."""
         if e.refine_accepted and e.refine_fitness is not None:
             self._fitness.append(e.refine_fitness)
         if e.dynamic_share is not None:

@@ -61,6 +61,9 @@ class RefinedFlow:
     stats: dict = field(default_factory=dict)
     target_tree: object = None
     """``scipy.spatial.cKDTree`` of ``target_points`` where the refinement built one."""
+    scene_points: np.ndarray | None = None
+    """The downsampled static points of scan k-1 (M,3, frame k-1), snapped or not: the
+    scene whose geometry the odometry's degeneracy check judges."""
 
 
 def _downsample(points: np.ndarray, voxel: float, max_range: float):
@@ -152,4 +155,4 @@ def refine_static_flow(
     d = np.einsum("ij,ij->i", x[ok] - planar[j[ok]], normals)
     q = x[ok] - d[:, None] * normals
     stats["refine_plane_rmse_m"] = float(np.sqrt(np.mean(d * d)))
-    return RefinedFlow(p[ok], q - p[ok], T, True, tgt_points, stats, target_tree)
+    return RefinedFlow(p[ok], q - p[ok], T, True, tgt_points, stats, target_tree, p)
