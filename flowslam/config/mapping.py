@@ -29,8 +29,9 @@ class MappingConfig(StrictModel):
     max_distance_m: float = Field(40.0, gt=0)
     """Scans whose sensor is farther than this from the newest one leave the map (the
     'last N metres') ..."""
-    max_scans: int = Field(20, ge=1)
-    """... and the map holds at most this many scans."""
+    max_scans: int = Field(30, ge=1)
+    """... and the map holds at most this many scans (30: kitti00-path ssf a-loam drift
+    0.112 -> 0.068 %, simulated dt 0.034 -> 0.023 %, against 20; docs/mapping.md)."""
     max_range_m: float = Field(80.0, gt=0)
     """Scan points farther than this from the sensor are not registered nor mapped."""
     min_range_m: float = Field(3.0, ge=0)
