@@ -11,7 +11,7 @@ run in the same process, one after the other, so that they share the machine's l
 - ``refine``: static refinement, no objects;
 - ``full`` (the default configuration): refinement and objects.
 
-    python tools/bench_ssf_pipeline.py [SEQUENCE] [--runs 3] [--threads 2] [--frames 16]
+    python tools/bench_ssf_pipeline.py [SEQUENCE] [--runs 3] [--threads N] [--frames 16]
 
 The machine's load average is printed: on a shared machine the timings are upper bounds.
 Run with ``OMP_WAIT_POLICY=PASSIVE`` on a loaded machine (see ``bench_sceneflow.py``).
@@ -36,7 +36,7 @@ CONFIGS = {
 }
 
 
-def run_once(frames, options: dict, threads: int) -> tuple[list[float], dict[str, list[float]]]:
+def run_once(frames, options: dict, threads: int | None) -> tuple[list[float], dict[str, list[float]]]:
     """Per-frame wall times (ms) of ``process`` and of each stage, frames 1.. of one pass."""
     from flowslam.config import SsfConfig
     from flowslam.frontends.ssf import SsfFrontend
@@ -58,7 +58,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("sequence", nargs="?", type=Path, default=DATA / "kitti-odometry-00-first16")
     ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch threads of the network (default: the frontend's own default)")
     ap.add_argument("--frames", type=int, default=16)
     args = ap.parse_args()
 
@@ -67,7 +68,7 @@ def main() -> None:
     ds = open_dataset(args.sequence)
     frames = [ds[i] for i in range(min(args.frames, len(ds)))]
     n_points = int(np.median([len(f.points) for f in frames]))
-    print(f"{args.sequence.name}: {len(frames)} frames, median {n_points} points; threads {args.threads}; "
+    print(f"{args.sequence.name}: {len(frames)} frames, median {n_points} points; threads {args.threads or 'default'}; "
           f"load average {os.getloadavg()[0]:.2f}")
     for name, options in CONFIGS.items():
         totals, stages = [], {}
