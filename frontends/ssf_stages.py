@@ -342,8 +342,6 @@ class ObjectsStage:
         self.movers = MoverPrior(self.options.track_radius_m)
 
     def run(self, state: PairState) -> None:
-        from scipy.spatial import cKDTree
-
         from flowslam.sceneflow.refinement.objects import refine_objects
         from flowslam.sceneflow.refinement.visibility import geometric_movers
 
@@ -357,7 +355,7 @@ class ObjectsStage:
         if c.motion_evidence.enabled:
             movers, seen = geometric_movers(prev, state.frame.points, T_ego, c.motion_evidence)
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
-                                 state.refined.target_tree or cKDTree(state.refined.target_points), movers, seen)
+                                 state.refined.target_tree, movers, seen)
         accepted = np.array([o["accepted"] for o in objects.objects] + [False])  # [-1] -> False
         state.flow, state.static = objects.flow, ~objects.dynamic
         state.instance = np.where(accepted[objects.instance], objects.instance, -1)

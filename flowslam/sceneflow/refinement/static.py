@@ -60,7 +60,7 @@ class RefinedFlow:
     target_points: np.ndarray
     stats: dict = field(default_factory=dict)
     target_tree: object = None
-    """``scipy.spatial.cKDTree`` of ``target_points`` where the refinement built one."""
+    """``scipy.spatial.cKDTree`` of ``target_points``; always set when ``accepted``."""
     scene_points: np.ndarray | None = None
     """The downsampled static points of scan k-1 (M,3, frame k-1), snapped or not: the
     scene whose geometry the odometry's degeneracy check judges."""
