@@ -331,7 +331,10 @@ class ObjectsStage:
     """Moving objects against scan k: candidates (network dynamic, tracked movers, geometric
     movers) -> per-object ICP -> flow, dynamic labels and instances. Needs an accepted
     static refinement (the ego motion it verifies objects against); keeps the network's
-    output otherwise."""
+    output otherwise.
+
+    Scan k's surface index (KD-tree, normals, boxes) and scan k-1's local ground are
+    built once per pair and shared by the sub-steps."""
 
     name = "objects"
 
@@ -342,24 +345,33 @@ class ObjectsStage:
         self.movers = MoverPrior(self.options.track_radius_m)
 
     def run(self, state: PairState) -> None:
-        from flowslam.sceneflow.refinement.objects import refine_objects
+        from flowslam.sceneflow.refinement.clusters import LocalGround, ScanSurface
+        from flowslam.sceneflow.refinement.objects import (
+            object_target_range,
+            refine_objects,
+        )
         from flowslam.sceneflow.refinement.visibility import geometric_movers
 
         if not state.refinement_accepted:
             return
         c, prev, T_ego = self.options, state.prev.points, state.estimate.T_curr_prev
+        evidence = c.motion_evidence
+        # one index of scan k for both users: the movers' test reaches max_range_m + off_surface_m
+        # (+ the ego motion), the objects' boxes object_target_range
+        surface = ScanSurface(state.frame.points, max(object_target_range(c), evidence.max_range_m + 5.0))
+        ground = LocalGround(prev, evidence.ground_cell_m)
         tracked, tracked_flow = self.movers.predict(prev, T_ego)
         flow = np.where(tracked[:, None], tracked_flow, state.flow)  # last pair's movers, moved on
         dynamic = ~state.static | tracked
         movers = seen = None
-        if c.motion_evidence.enabled:
-            movers, seen = geometric_movers(prev, state.frame.points, T_ego, c.motion_evidence)
+        if evidence.enabled:
+            movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground)
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
-                                 state.refined.target_tree, movers, seen)
+                                 state.refined.target_tree, movers, seen, surface)
         accepted = np.array([o["accepted"] for o in objects.objects] + [False])  # [-1] -> False
         state.flow, state.static = objects.flow, ~objects.dynamic
         state.instance = np.where(accepted[objects.instance], objects.instance, -1)
-        self.movers.update(prev, objects.flow, objects.dynamic, T_ego)
+        self.movers.update(prev, objects.flow, objects.dynamic, T_ego, ground)
         state.stats.update(objects.stats, tracked_candidates=int(tracked.sum()))
 
 

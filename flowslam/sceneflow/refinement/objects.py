@@ -21,6 +21,15 @@ when that is strictly nearer. Points of rejected or too small objects keep the n
 label, except that network-dynamic points whose ego-rigid landing spot lies on a
 surface of scan ``k`` become static (the static explanation fits the data).
 
+Scan k is indexed once per pair (:class:`~flowslam.sceneflow.refinement.clusters.ScanSurface`):
+the ICP boxes come from its BEV buckets (same points, same x order as a bisection of the
+x-sorted scan), and every score and landing test queries its one KD-tree, with each
+target normal computed once. The box only bounds the ICP's target; scores look at the
+whole scan. The scored points start >= ``margin_m`` inside the box, so a score differs
+from a box-only one only where a motion puts them near the box's edge (target normals
+there then see their neighbours outside the box too); no output changed on the KITTI
+and simulated rush-hour pairs replayed against the box-only version.
+
 Instance tracking, object velocities over time and the iterative flow/segmentation
 loop of SSF-PAN are a later step; this is the per-pair rigid refinement only.
 
@@ -36,7 +45,7 @@ import numpy as np
 
 from flowslam.geometry import transform_points
 from flowslam.config.ssf import ObjectRefinementConfig
-from flowslam.sceneflow.refinement.clusters import bev_clusters
+from flowslam.sceneflow.refinement.clusters import ScanSurface, bev_clusters
 
 __all__ = ["ObjectRefinement", "refine_objects"]
 
@@ -57,62 +66,54 @@ class ObjectRefinement:
 
 
 
-def _register(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, c: ObjectRefinementConfig):
-    """Point-to-point ICP of an object's points onto the target box; returns T.
+def _register(src, tgt, T: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
+    """Point-to-point ICP of an object's points onto the target box (Open3D point clouds,
+    see :func:`_cloud`), coarse to fine (``correspondence_m``); returns T.
 
     Point-to-point, not point-to-plane: normals of a few hundred sparse ring points are
     unreliable (measured: point-to-plane diverged on several simulated objects)."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration
-    s = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src))
-    t = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt))
     criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=c.max_iterations)
     for max_dist in c.correspondence_m:
-        T = np.asarray(reg.registration_icp(s, t, max_dist, T, reg.TransformationEstimationPointToPoint(),
+        T = np.asarray(reg.registration_icp(src, tgt, max_dist, T, reg.TransformationEstimationPointToPoint(),
                                             criteria).transformation).copy()
     return T
 
 
-def _normals_at(tree, tgt: np.ndarray, idx: np.ndarray, radius: float, k: int = 20) -> np.ndarray:
-    """(len(idx),3) unit normals of target points ``idx``: smallest principal axis of their
-    (at most ``k``) neighbours within ``radius`` (a point with < 3 neighbours gets NaN)."""
-    dist, nb = tree.query(tgt[idx], k=min(k, len(tgt)), distance_upper_bound=radius)
-    dist, nb = dist.reshape(len(idx), -1), nb.reshape(len(idx), -1)
-    valid = np.isfinite(dist)
-    pts = tgt[np.where(valid, nb, 0)] * valid[..., None]
-    n = valid.sum(axis=1).astype(np.float64)
-    mean = pts.sum(axis=1) / n[:, None]
-    cov = np.einsum("mki,mkj->mij", pts, pts) / n[:, None, None] - np.einsum("mi,mj->mij", mean, mean)
-    normals = np.linalg.eigh(cov)[1][:, :, 0]
-    normals[n < 3] = np.nan
-    return normals
+def _cloud(points: np.ndarray):
+    """Open3D point cloud of (N,3) points (built once per object, shared by its ICP starts)."""
+    import open3d as o3d
+
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
 
 
-def _best_icp(p: np.ndarray, tgt: np.ndarray, tree, starts: list[np.ndarray], c: "ObjectRefinementConfig"):
-    """ICP of ``p`` onto ``tgt`` from each start; the best by (fitness, -RMSE):
-    (T, fitness, rmse, start)."""
+def _best_icp(p: np.ndarray, tgt, surface: ScanSurface, starts: list[np.ndarray], c: ObjectRefinementConfig):
+    """ICP of ``p`` onto the target box ``tgt`` (an Open3D cloud) from each start; the best by
+    (fitness, -RMSE) against ``surface``: (T, fitness, rmse, start)."""
     best = None
+    src = _cloud(p)
     for T_start in starts:
-        T = _register(p, tgt, T_start, c)
-        fitness, rmse = _score(p, T, tree, tgt, c)
+        T = _register(src, tgt, T_start, c)
+        fitness, rmse = _score(p, T, surface, c)
         if best is None or (fitness, -rmse) > (best[1], -best[2]):
             best = (T, fitness, rmse, T_start)
     return best
 
 
-def _score(src: np.ndarray, T: np.ndarray, tree, tgt: np.ndarray, c: ObjectRefinementConfig):
+def _score(src: np.ndarray, T: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig):
     """(fitness, RMSE) of ``T src`` against the target surface: a point is an inlier when its
     nearest target point is within ``score_distance_m`` and it lies within ``score_plane_m``
     of that point's tangent plane; RMSE of the inliers' plane distances (m). Plane, not
     point, distances: a static surface seen by other rings in scan k is still a surface."""
     x = transform_points(T, src)
-    dist, j = tree.query(x, distance_upper_bound=c.score_distance_m)
+    dist, j = surface.tree.query(x, distance_upper_bound=c.score_distance_m)
     ok = np.flatnonzero(np.isfinite(dist))
     if ok.size == 0:
         return 0.0, float("inf")
-    normals = _normals_at(tree, tgt, j[ok], c.normal_radius_m)
-    plane = np.abs(np.einsum("ij,ij->i", x[ok] - tgt[j[ok]], normals))
+    normals = surface.normals(j[ok], c.normal_radius_m)
+    plane = np.abs(np.einsum("ij,ij->i", x[ok] - surface.points[j[ok]], normals))
     inlier = plane < c.score_plane_m  # NaN normals compare False
     if not inlier.any():
         return 0.0, float("inf")
@@ -138,6 +139,7 @@ def refine_objects(
     target_tree=None,
     movers: np.ndarray | None = None,
     seen_through: np.ndarray | None = None,
+    surface: ScanSurface | None = None,
 ) -> ObjectRefinement:
     """Refine the flow of the candidate moving points of ``source`` (scan k-1) against
     ``target`` (scan k) given the ego motion ``T_ego`` = ``T_{k,k-1}`` (module doc).
@@ -150,6 +152,8 @@ def refine_objects(
     (:func:`flowslam.sceneflow.refinement.visibility.geometric_movers`); movers become candidates, and
     objects with seen-through points also start ICP from shifted ego landings
     (``hypotheses_m``), since free space says *that* they moved, not where to.
+    ``surface``: a :class:`ScanSurface` of ``target`` to share (it must hold the target
+    points within ``max_range_m + margin_m + 5`` m, horizontally); built here when not given.
     """
     from scipy.spatial import cKDTree
 
@@ -157,91 +161,23 @@ def refine_objects(
     flow, dynamic = np.array(flow, dtype=np.float64), np.array(dynamic, dtype=bool)
     if target_tree is None:
         target_tree = cKDTree(target)
-    near = np.hypot(source[:, 0], source[:, 1]) < c.max_range_m
+    if surface is None:
+        surface = ScanSurface(target, object_target_range(c))
     movers = np.zeros(len(source), dtype=bool) if movers is None else np.asarray(movers, dtype=bool)
     seen = np.zeros(len(source), dtype=bool) if seen_through is None else np.asarray(seen_through, dtype=bool)
+    near = np.einsum("ij,ij->i", source[:, :2], source[:, :2]) < c.max_range_m ** 2
     cand = np.flatnonzero((dynamic & near) | movers)
-    labels = bev_clusters(source[cand], c.cluster_cell_m)
-    counts = np.bincount(labels) if labels.size else np.zeros(0, dtype=np.int64)
-    R = T_ego[:3, :3]
     interval = dt if dt and dt > 0 else 0.1
-    speed_bound = c.dynamic_speed_mps * interval
     objects = []
     settled = np.zeros(len(source), dtype=bool)
     instance = np.full(len(source), -1, dtype=np.int64)
-    near_target = target[np.hypot(target[:, 0], target[:, 1]) < c.max_range_m + c.margin_m + 5.0]
-    near_target = near_target[np.argsort(near_target[:, 0], kind="stable")]  # x-sorted: boxes by bisection
-    order = np.argsort(labels, kind="stable")  # candidates grouped by cluster
-    starts = np.concatenate([[0], np.cumsum(counts)])
-    for label in np.flatnonzero(counts >= c.min_points):
-        idx = cand[order[starts[label]:starts[label + 1]]]
-        p = source[idx]
-        T0 = np.eye(4)
-        T0[:3, :3] = R
-        T0[:3, 3] = np.median(p + flow[idx] - p @ R.T, axis=0)  # the network's (or carried) displacement
-        ego = transform_points(T_ego, p)  # where the points land if they are static
-        sub = movers[idx]
-        mover_starts = []
-        if c.hypotheses_m and sub.sum() >= c.min_points and seen[idx].sum() >= c.min_seen_through:
-            axis = R @ _principal_axis(p[sub])
-            for d in c.hypotheses_m:
-                shifted = T_ego.copy()
-                shifted[:3, 3] += d * axis
-                mover_starts.append(shifted)
-        reach = max(abs(d) for d in c.hypotheses_m) if mover_starts else 0.0
-        guess = transform_points(T0, p)
-        lo = np.minimum(guess.min(axis=0), ego.min(axis=0)) - c.margin_m - reach
-        hi = np.maximum(guess.max(axis=0), ego.max(axis=0)) + c.margin_m + reach
-        a, b = np.searchsorted(near_target[:, 0], [lo[0], hi[0]])
-        tgt = near_target[a:b]
-        tgt = tgt[np.all((tgt[:, 1:] >= lo[1:]) & (tgt[:, 1:] <= hi[1:]), axis=1)]
-        record = {"points": int(len(idx)), "target_points": int(len(tgt)), "accepted": False}
+    for idx in _clusters(source, cand, c):
         instance[idx] = len(objects)
+        record = _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface, c)
         objects.append(record)
-        if len(tgt) < c.min_points:
-            continue
-        tree = cKDTree(tgt)
-        static_fitness, static_rmse = _score(p, T_ego, tree, tgt, c)
-        record.update(static_fitness=static_fitness, static_rmse_m=static_rmse)
-        if static_fitness >= c.static_fitness_accept:  # static whatever the ICP finds: skip it
-            record.update(accepted=True, speed_mps=0.0)
-            flow[idx], dynamic[idx], settled[idx] = ego - p, False, True
-            continue
-        motions = []  # candidate rigid motions of (parts of) this object besides the ego motion
-        T, fitness, rmse, T_start = _best_icp(p, tgt, tree, [T0] + mover_starts, c)
-        moved_by = float(np.linalg.norm((T[:3, :3] - R) @ p.mean(axis=0) + T[:3, 3] - T_start[:3, 3]))
-        record.update(fitness=fitness, rmse_m=rmse, icp_correction_m=moved_by)
-        if fitness >= c.min_fitness and rmse <= c.max_rmse_m and moved_by <= c.max_correction_m:
-            record["accepted"] = True
-            if not (static_fitness >= fitness - c.static_preference
-                    and static_rmse <= c.static_rmse_ratio * rmse + 0.005):
-                motions.append(T)  # not explained as well by the ego motion
-        if mover_starts:  # the geometric movers alone, from shifted ego landings
-            Tm, fm, rm, _ = _best_icp(p[sub], tgt, tree, mover_starts + [T0], c)
-            joint_on_movers = _score(p[sub], motions[0], tree, tgt, c)[0] if motions else 0.0
-            record.update(mover_fitness=fm, mover_rmse_m=rm)
-            # only when the object's own ICP does not already explain its movers
-            if fm >= c.min_fitness and rm <= c.max_rmse_m and fm > joint_on_movers + c.static_preference:
-                record["accepted"] = True
-                motions.append(Tm)
-        if not record["accepted"]:
-            continue
-        # per point: the ego motion when it puts the point strictly nearer to scan k's surface than
-        # every object motion, else the nearest object motion (the first when none lands near)
-        chosen = ego
-        if motions:
-            landings = [transform_points(M, p) for M in motions]
-            dist = np.stack([tree.query(x, distance_upper_bound=c.score_distance_m)[0] for x in landings])
-            best = np.argmin(dist, axis=0)
-            chosen = np.stack(landings)[best, np.arange(len(idx))]
-            d_ego = tree.query(ego, distance_upper_bound=c.score_distance_m)[0]
-            chosen = np.where((d_ego < dist[best, np.arange(len(idx))])[:, None], ego, chosen)
-        departure = np.linalg.norm(chosen - ego, axis=1)
-        moving = departure > speed_bound
-        record["speed_mps"] = float(np.median(departure[moving]) / interval) if moving.any() else 0.0
-        flow[idx] = np.where(moving[:, None], chosen, ego) - p
-        dynamic[idx] = moving
-        settled[idx] = True
+        if "result" in record:
+            landing, moving = record.pop("result")
+            flow[idx], dynamic[idx], settled[idx] = landing - source[idx], moving, True
     # the rest of the network's dynamic points: static if the ego motion lands them on a surface
     rest = np.flatnonzero(dynamic & ~settled)
     on_surface = np.zeros(0, dtype=bool)
@@ -250,7 +186,7 @@ def refine_objects(
         on_surface = np.isfinite(target_tree.query(rigid, distance_upper_bound=c.off_surface_m)[0])
         dynamic[rest[on_surface]] = False
     static = ~dynamic & ~settled
-    flow[static] = transform_points(T_ego, source[static]) - source[static]
+    flow[static] = _rigid_flow(T_ego, source, static)
     stats = {
         "object_candidates": int(cand.size),
         "objects": len(objects),
@@ -259,3 +195,115 @@ def refine_objects(
         "relabelled_static": int(on_surface.sum()),
     }
     return ObjectRefinement(flow, dynamic, instance, objects, stats)
+
+
+def object_target_range(c: ObjectRefinementConfig) -> float:
+    """Horizontal range (m) of the target points the objects are registered to."""
+    return c.max_range_m + c.margin_m + 5.0
+
+
+def _rigid_flow(T: np.ndarray, source: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(mask.sum(),3) flow ``T p - p`` of the points ``source[mask]``."""
+    p = source[mask]
+    return p @ (T[:3, :3] - np.eye(3)).T + T[:3, 3]
+
+
+def _clusters(source: np.ndarray, cand: np.ndarray, c: ObjectRefinementConfig) -> list[np.ndarray]:
+    """The candidate indices ``cand`` grouped into BEV clusters (``cluster_cell_m``) of at
+    least ``min_points`` points, each as an index array into ``source``, by label."""
+    labels = bev_clusters(source[cand], c.cluster_cell_m)
+    if labels.size == 0:
+        return []
+    counts = np.bincount(labels)
+    order = np.argsort(labels, kind="stable")  # candidates grouped by cluster
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    return [cand[order[starts[label]:starts[label + 1]]] for label in np.flatnonzero(counts >= c.min_points)]
+
+
+def _mover_starts(p: np.ndarray, sub: np.ndarray, seen: np.ndarray, T_ego: np.ndarray,
+                  c: ObjectRefinementConfig) -> list[np.ndarray]:
+    """The ego motion shifted by each of ``hypotheses_m`` along the movers' principal BEV axis
+    (in frame k), for objects with enough geometric movers ``sub`` and seen-through points."""
+    if not (c.hypotheses_m and sub.sum() >= c.min_points and seen.sum() >= c.min_seen_through):
+        return []
+    axis = T_ego[:3, :3] @ _principal_axis(p[sub])
+    starts = []
+    for d in c.hypotheses_m:
+        shifted = T_ego.copy()
+        shifted[:3, 3] += d * axis
+        starts.append(shifted)
+    return starts
+
+
+def _target_box(surface: ScanSurface, guess: np.ndarray, ego: np.ndarray, reach: float,
+                c: ObjectRefinementConfig) -> np.ndarray:
+    """The target points in the box around both landings of the object (its start ``guess``
+    and ``ego``), grown by ``margin_m`` + ``reach``."""
+    lo = np.minimum(guess.min(axis=0), ego.min(axis=0)) - c.margin_m - reach
+    hi = np.maximum(guess.max(axis=0), ego.max(axis=0)) + c.margin_m + reach
+    return surface.in_box(lo, hi)
+
+
+def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.ndarray, T_ego: np.ndarray,
+                   interval: float, surface: ScanSurface, c: ObjectRefinementConfig) -> dict:
+    """Register one object (points ``p``, frame k-1; their flow; its geometric movers ``sub``
+    and seen-through points) to scan k, ``interval`` (s) after. Returns its record; an
+    accepted one also holds ``result``: (landing (M,3) of each point in frame k, moving (M,)
+    bool)."""
+    R = T_ego[:3, :3]
+    T0 = np.eye(4)
+    T0[:3, :3] = R
+    T0[:3, 3] = np.median(p + flow - p @ R.T, axis=0)  # the network's (or carried) displacement
+    ego = transform_points(T_ego, p)  # where the points land if they are static
+    mover_starts = _mover_starts(p, sub, seen, T_ego, c)
+    reach = max(abs(d) for d in c.hypotheses_m) if mover_starts else 0.0
+    box = _target_box(surface, transform_points(T0, p), ego, reach, c)
+    record = {"points": int(len(p)), "target_points": int(len(box)), "accepted": False}
+    if len(box) < c.min_points:
+        return record
+    static_fitness, static_rmse = _score(p, T_ego, surface, c)
+    record.update(static_fitness=static_fitness, static_rmse_m=static_rmse)
+    if static_fitness >= c.static_fitness_accept:  # static whatever the ICP finds: skip it
+        record.update(accepted=True, speed_mps=0.0, result=(ego, np.zeros(len(p), dtype=bool)))
+        return record
+    tgt = _cloud(box)
+    motions = []  # candidate rigid motions of (parts of) this object besides the ego motion
+    T, fitness, rmse, T_start = _best_icp(p, tgt, surface, [T0] + mover_starts, c)
+    moved_by = float(np.linalg.norm((T[:3, :3] - R) @ p.mean(axis=0) + T[:3, 3] - T_start[:3, 3]))
+    record.update(fitness=fitness, rmse_m=rmse, icp_correction_m=moved_by)
+    if fitness >= c.min_fitness and rmse <= c.max_rmse_m and moved_by <= c.max_correction_m:
+        record["accepted"] = True
+        if not (static_fitness >= fitness - c.static_preference
+                and static_rmse <= c.static_rmse_ratio * rmse + 0.005):
+            motions.append(T)  # not explained as well by the ego motion
+    if mover_starts:  # the geometric movers alone, from shifted ego landings
+        Tm, fm, rm, _ = _best_icp(p[sub], tgt, surface, mover_starts + [T0], c)
+        joint_on_movers = _score(p[sub], motions[0], surface, c)[0] if motions else 0.0
+        record.update(mover_fitness=fm, mover_rmse_m=rm)
+        # only when the object's own ICP does not already explain its movers
+        if fm >= c.min_fitness and rm <= c.max_rmse_m and fm > joint_on_movers + c.static_preference:
+            record["accepted"] = True
+            motions.append(Tm)
+    if record["accepted"]:
+        landing = _choose_landing(p, ego, motions, surface, c)
+        departure = np.linalg.norm(landing - ego, axis=1)
+        moving = departure > c.dynamic_speed_mps * interval
+        record["speed_mps"] = float(np.median(departure[moving]) / interval) if moving.any() else 0.0
+        record["result"] = (np.where(moving[:, None], landing, ego), moving)
+    return record
+
+
+def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], surface: ScanSurface,
+                    c: ObjectRefinementConfig) -> np.ndarray:
+    """(M,3) landing of each point of ``p`` (frame k): its ego landing ``ego`` when that puts
+    it strictly nearer to scan k's surface than every object motion does, else the landing
+    of the nearest object motion (the first when none lands within ``score_distance_m``)."""
+    if not motions:
+        return ego
+    landings = np.stack([transform_points(M, p) for M in motions])
+    dist = surface.tree.query(landings.reshape(-1, 3), distance_upper_bound=c.score_distance_m)[0]
+    dist = dist.reshape(len(motions), len(p))
+    best = np.argmin(dist, axis=0)
+    rows = np.arange(len(p))
+    d_ego = surface.tree.query(ego, distance_upper_bound=c.score_distance_m)[0]
+    return np.where((d_ego < dist[best, rows])[:, None], ego, landings[best, rows])

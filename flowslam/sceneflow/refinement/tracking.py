@@ -10,7 +10,12 @@ from __future__ import annotations
 import numpy as np
 
 from flowslam.geometry import transform_points
-from flowslam.sceneflow.refinement.clusters import above_ground
+from flowslam.sceneflow.refinement.clusters import (
+    MAX_GRID_CELLS,
+    LocalGround,
+    above_ground,
+    grid_occupancy,
+)
 
 __all__ = ["MoverPrior"]
 
@@ -32,35 +37,56 @@ class MoverPrior:
         self._landing: np.ndarray | None = None
         self._motion: np.ndarray | None = None
 
-    def update(self, source: np.ndarray, flow: np.ndarray, dynamic: np.ndarray, T_ego: np.ndarray) -> None:
+    def update(self, source: np.ndarray, flow: np.ndarray, dynamic: np.ndarray, T_ego: np.ndarray,
+               ground: LocalGround | None = None) -> None:
         """Record pair (k-1, k): source points (frame k-1), flow, labels, ``T_ego`` = T_{k,k-1}.
         Ground-level points are not carried (``ground_clearance_m`` above the lowest point of
-        their ``ground_cell_m`` BEV cell): the road under a mover would carry its motion on."""
+        their ``ground_cell_m`` BEV cell): the road under a mover would carry its motion on.
+        ``ground``: the :class:`LocalGround` of all of ``source`` to share (used when its cell
+        is ``ground_cell_m``; else the ground of the points around the dynamic ones is built)."""
         idx = np.flatnonzero(dynamic)
         if idx.size and self.ground_clearance_m > 0:
-            near = np.hypot(source[:, 0], source[:, 1]) < np.hypot(*np.abs(source[idx, :2]).max(axis=0)) + 5.0
-            above = np.zeros(len(source), dtype=bool)
-            above[near] = above_ground(source[near], self.ground_cell_m, self.ground_clearance_m)
-            idx = idx[above[idx]]
+            idx = idx[self._above_ground(source, idx, ground)]
         p = source[idx]
         self._landing = p + flow[idx]
         self._motion = self._landing - transform_points(T_ego, p)
 
+    def _above_ground(self, source: np.ndarray, idx: np.ndarray, ground: LocalGround | None) -> np.ndarray:
+        """(len(idx),) bool: the points ``idx`` of ``source`` clear of the local ground."""
+        if ground is not None and ground.cell == self.ground_cell_m:
+            return ground.above(self.ground_clearance_m)[idx]
+        near = np.hypot(source[:, 0], source[:, 1]) < np.hypot(*np.abs(source[idx, :2]).max(axis=0)) + 5.0
+        above = np.zeros(len(source), dtype=bool)
+        above[near] = above_ground(source[near], self.ground_cell_m, self.ground_clearance_m)
+        return above[idx]
+
     def predict(self, points: np.ndarray, T_ego: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N,) bool candidates among ``points`` (scan k, frame k) and their (N,3) predicted
         flow (rows of non-candidates are zero), given ``T_ego`` = T_{k+1,k}."""
-        from scipy.spatial import cKDTree
-
         mask = np.zeros(len(points), dtype=bool)
         flow = np.zeros((len(points), 3))
         if self._landing is None or len(self._landing) == 0:
             return mask, flow
-        lo, hi = self._landing.min(axis=0) - self.radius_m, self._landing.max(axis=0) + self.radius_m
-        inside = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
-        dist, j_in = cKDTree(self._landing).query(points[inside], distance_upper_bound=self.radius_m)
-        mask[inside] = np.isfinite(dist)
-        j = np.zeros(len(points), dtype=np.int64)
-        j[inside] = np.minimum(j_in, len(self._landing) - 1)
-        p = points[mask]
-        flow[mask] = transform_points(T_ego, p) - p + self._motion[j[mask]] @ T_ego[:3, :3].T
+        idx, j = self._near_landing(points)
+        mask[idx] = True
+        p = points[idx]
+        flow[idx] = transform_points(T_ego, p) - p + self._motion[j] @ T_ego[:3, :3].T
         return mask, flow
+
+    def _near_landing(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Indices of the ``points`` within ``radius_m`` of a landing spot, and of their nearest
+        landing spot. Exact: only points in a voxel (edge ``radius_m``) next to a landing
+        spot's voxel can be that close, and only they search the KD-tree."""
+        from scipy.spatial import cKDTree
+
+        r = self.radius_m
+        lo, hi = self._landing.min(axis=0) - r, self._landing.max(axis=0) + r
+        inside = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
+        shape = tuple(int(s) for s in np.floor((hi - lo) / r) + 1) if r > 0 else (0,)
+        if r > 0 and np.prod(shape, dtype=np.float64) <= MAX_GRID_CELLS:
+            grid = grid_occupancy(self._landing, lo, r, shape, dilate=True)
+            ijk = np.minimum(np.floor((points[inside] - lo) / r).astype(np.int64), np.array(shape) - 1)
+            inside = inside[grid[np.ravel_multi_index((ijk[:, 0], ijk[:, 1], ijk[:, 2]), shape)]]
+        dist, j = cKDTree(self._landing).query(points[inside], distance_upper_bound=r)
+        hit = np.isfinite(dist)
+        return inside[hit], j[hit]

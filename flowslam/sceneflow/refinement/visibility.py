@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from flowslam.config.ssf import MotionEvidenceConfig
 from flowslam.geometry import transform_points
-from flowslam.sceneflow.refinement.clusters import above_ground, bev_clusters
+from flowslam.sceneflow.refinement.clusters import LocalGround, ScanSurface, above_ground, bev_clusters
 
 __all__ = ["RangeImage", "spherical", "geometric_movers"]
 
@@ -76,22 +76,30 @@ class RangeImage:
 
 
 def geometric_movers(
-    source: np.ndarray, target: np.ndarray, T_ego: np.ndarray, config: MotionEvidenceConfig | None = None
+    source: np.ndarray,
+    target: np.ndarray,
+    T_ego: np.ndarray,
+    config: MotionEvidenceConfig | None = None,
+    surface: ScanSurface | None = None,
+    ground: LocalGround | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(movers, seen_through): (N,) bool masks over ``source`` (module doc)."""
-    from scipy.spatial import cKDTree
+    """(movers, seen_through): (N,) bool masks over ``source`` (module doc).
 
-
+    ``surface``: a :class:`ScanSurface` of ``target`` to share (it must hold every target
+    point within ``max_range_m + off_surface_m`` of the sensor, horizontally, plus the ego
+    motion); ``ground``: the :class:`LocalGround` of all of ``source`` (with a cell of
+    ``ground_cell_m``) to share. Either is built here when not given."""
     c = config or MotionEvidenceConfig()
     movers = np.zeros(len(source), dtype=bool)
     seen = np.zeros(len(source), dtype=bool)
-    near = np.flatnonzero(np.hypot(source[:, 0], source[:, 1]) < c.max_range_m)
-    near = near[above_ground(source[near], c.ground_cell_m, c.ground_clearance_m)]
+    near = np.flatnonzero(np.einsum("ij,ij->i", source[:, :2], source[:, :2]) < c.max_range_m ** 2)
+    near = near[_above_ground(source, near, c, ground)]
     if near.size == 0:
         return movers, seen
     x = transform_points(T_ego, source[near])
-    tgt = target[np.hypot(target[:, 0], target[:, 1]) < c.max_range_m + 5.0]
-    off = ~np.isfinite(cKDTree(tgt).query(x, distance_upper_bound=c.off_surface_m)[0])
+    if surface is None:
+        surface = ScanSurface(target, c.max_range_m + 5.0)
+    off = ~surface.near_any(x, c.off_surface_m)
     near, x = near[off], x[off]
     if near.size == 0:
         return movers, seen
@@ -99,8 +107,24 @@ def geometric_movers(
     labels = bev_clusters(source[near], c.cluster_cell_m)
     counts = np.bincount(labels)
     seeds = np.bincount(labels, weights=seen[near].astype(np.float64), minlength=len(counts))
-    for label in np.flatnonzero((counts >= c.min_points) & (seeds >= c.min_seen_through)):
-        idx = near[labels == label]
-        if np.hypot(*np.ptp(source[idx, :2], axis=0)) <= c.max_extent_m:
-            movers[idx] = True
+    kept = (counts >= c.min_points) & (seeds >= c.min_seen_through)
+    kept[kept] = _bev_extent(source[near, :2], labels, len(counts))[kept] <= c.max_extent_m
+    movers[near[kept[labels]]] = True
     return movers, seen
+
+
+def _above_ground(source: np.ndarray, idx: np.ndarray, c: MotionEvidenceConfig, ground: LocalGround | None) -> np.ndarray:
+    """(len(idx),) bool: the points ``idx`` of ``source`` clear of the local ground. With the
+    shared ``ground`` of the whole scan when its cell matches, else on ``source[idx]`` alone."""
+    if ground is not None and ground.cell == c.ground_cell_m:
+        return ground.above(c.ground_clearance_m)[idx]
+    return above_ground(source[idx], c.ground_cell_m, c.ground_clearance_m)
+
+
+def _bev_extent(xy: np.ndarray, labels: np.ndarray, n_labels: int) -> np.ndarray:
+    """(n_labels,) diagonal (m) of each label's axis-aligned BEV bounding box (``np.ptp`` per label)."""
+    lo = np.full((n_labels, 2), np.inf)
+    hi = np.full((n_labels, 2), -np.inf)
+    np.minimum.at(lo, labels, xy)
+    np.maximum.at(hi, labels, xy)
+    return np.hypot(*(hi - lo).T)

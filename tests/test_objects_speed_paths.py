@@ -1,0 +1,146 @@
+"""The fast paths of the objects stage equal the straightforward computations they replace.
+
+Each test builds a case (random clouds, a small street) and compares the shared/vectorised
+helper with a direct numpy / SciPy version: KD-tree queries, ``np.minimum.at``, ``np.ptp``
+per cluster, a box mask. Metres throughout.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from flowslam.geometry import transform_points
+from flowslam.sceneflow.refinement.clusters import (
+    LocalGround,
+    ScanSurface,
+    above_ground,
+    grid_occupancy,
+    lowest_per_cell,
+    plane_normals,
+)
+from flowslam.sceneflow.refinement.tracking import MoverPrior
+from flowslam.sceneflow.refinement.visibility import _bev_extent
+
+
+def _street(seed: int = 0, n: int = 20000) -> np.ndarray:
+    """A road plane with noise, two walls and a box-shaped car (m, sensor frame)."""
+    rng = np.random.default_rng(seed)
+    road = np.column_stack([rng.uniform(-30, 30, n), rng.uniform(-30, 30, n), -1.7 + 0.03 * rng.standard_normal(n)])
+    wall = np.column_stack([rng.uniform(-30, 30, n // 4), np.full(n // 4, 8.0) + 0.02 * rng.standard_normal(n // 4),
+                            rng.uniform(-1.7, 3.0, n // 4)])
+    car = np.column_stack([rng.uniform(4, 8, 2000), rng.uniform(-1, 1, 2000), rng.uniform(-1.3, -0.2, 2000)])
+    return np.vstack([road, wall, car])
+
+
+def test_lowest_per_cell_equals_minimum_at():
+    rng = np.random.default_rng(1)
+    for n_ids in (50, 40000):  # 16-bit radix path and the general path
+        ids = rng.integers(0, n_ids, 5000)
+        z = rng.normal(size=5000)
+        expected = np.full(n_ids, np.inf)
+        np.minimum.at(expected, ids, z)
+        np.testing.assert_array_equal(lowest_per_cell(ids, z, n_ids), expected)
+
+
+def test_local_ground_matches_the_per_subset_ground_and_voxel_alignment():
+    from flowslam.mapping import voxel_ids
+
+    points = _street(2)
+    ground = LocalGround(points, 2.0)
+    inverse, counts = voxel_ids(points * [1.0, 1.0, 0.0], 2.0)  # the straightforward cells
+    lowest = np.full(len(counts), np.inf)
+    np.minimum.at(lowest, inverse, points[:, 2])
+    np.testing.assert_array_equal(ground.above(0.3), points[:, 2] > lowest[inverse] + 0.3)
+    np.testing.assert_array_equal(above_ground(points, 2.0, 0.25), ground.above(0.25))
+
+
+def test_near_any_is_exact_against_a_kd_tree_query():
+    rng = np.random.default_rng(3)
+    scan = ScanSurface(_street(3), max_range_m=40.0)
+    queries = _street(4, 8000)
+    queries += rng.normal(scale=0.2, size=queries.shape)
+    for radius in (0.1, 0.25, 0.6):
+        expected = np.isfinite(cKDTree(scan.points).query(queries, distance_upper_bound=radius)[0])
+        got = scan.near_any(queries, radius)
+        np.testing.assert_array_equal(got, expected)
+        assert 0 < got.sum() < len(got)  # both answers occur
+
+
+def test_scan_surface_box_query_equals_a_mask():
+    scan = ScanSurface(_street(5), max_range_m=40.0)
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        lo = rng.uniform(-45, 40, 3) * [1, 1, 0.1]
+        hi = lo + rng.uniform(0, 15, 3)
+        expected = scan.points[np.all((scan.points >= lo) & (scan.points <= hi), axis=1)]
+        got = scan.in_box(lo, hi)
+        assert len(got) == len(expected)
+        np.testing.assert_array_equal(np.unique(got, axis=0), np.unique(expected, axis=0))
+    assert len(scan.in_box(np.array([100.0, 100, 0]), np.array([110.0, 110, 1]))) == 0  # outside the grid
+
+
+def test_cached_normals_equal_fresh_normals():
+    points = _street(6)
+    scan = ScanSurface(points)
+    tree = cKDTree(points)
+    rng = np.random.default_rng(6)
+    first, second = rng.integers(0, len(points), 300), rng.integers(0, len(points), 300)
+    for idx in (first, second, np.concatenate([first, second])):  # the last one entirely from the cache
+        got = scan.normals(idx, 1.0)
+        expected = plane_normals(tree, points, idx, 1.0)
+        # eigenvectors have a free sign: compare the lines
+        np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", got, expected)), 1.0, atol=1e-9)
+
+
+def test_dilated_grid_covers_every_point_within_one_voxel():
+    rng = np.random.default_rng(7)
+    spots = rng.uniform(-5, 5, (200, 3))
+    cell = 0.15
+    lo, hi = spots.min(axis=0) - cell, spots.max(axis=0) + cell
+    shape = tuple(int(s) for s in np.floor((hi - lo) / cell) + 1)
+    grid = grid_occupancy(spots, lo, cell, shape, dilate=True)
+    queries = spots[rng.integers(0, 200, 5000)] + rng.uniform(-cell, cell, (5000, 3)) * 0.999
+    ijk = np.floor((queries - lo) / cell).astype(np.int64)
+    assert grid[np.ravel_multi_index(ijk.T, shape)].all()
+
+
+def test_mover_prior_prediction_equals_a_plain_kd_tree_search():
+    points = _street(8)
+    rng = np.random.default_rng(8)
+    T = np.eye(4)
+    T[:3, 3] = [0.8, 0.02, 0.0]
+    dynamic = rng.random(len(points)) < 0.05
+    flow = transform_points(T, points) - points + rng.normal(scale=0.3, size=points.shape)
+    prior = MoverPrior(0.15)
+    prior.update(points, flow, dynamic, T)
+    query = points + rng.normal(scale=0.1, size=points.shape)
+    mask, predicted = prior.predict(query, T)
+    dist, j = cKDTree(prior._landing).query(query, distance_upper_bound=0.15)
+    expected = np.isfinite(dist)
+    np.testing.assert_array_equal(mask, expected)
+    q = query[expected]
+    np.testing.assert_allclose(predicted[expected], transform_points(T, q) - q + prior._motion[j[expected]] @ T[:3, :3].T)
+    assert not predicted[~expected].any()
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_mover_prior_with_a_shared_ground_keeps_the_same_movers(shared):
+    points = _street(9)
+    T = np.eye(4)
+    dynamic = np.zeros(len(points), dtype=bool)
+    dynamic[-2000:] = True  # the car ...
+    dynamic[:500] = True  # ... and some road under it, which must not be carried
+    prior = MoverPrior(0.15)
+    prior.update(points, np.zeros_like(points), dynamic, T, LocalGround(points, 2.0) if shared else None)
+    assert len(prior._landing) == 2000
+
+
+def test_bev_extent_equals_ptp_per_label():
+    rng = np.random.default_rng(10)
+    xy = rng.uniform(-20, 20, (3000, 2))
+    labels = rng.integers(0, 40, 3000)
+    got = _bev_extent(xy, labels, 40)
+    expected = [np.hypot(*np.ptp(xy[labels == k], axis=0)) for k in range(40)]
+    np.testing.assert_allclose(got, expected)
