@@ -8,21 +8,23 @@ mapping step; KISS-ICP's whole method).
 Frames (all ``T_a_b``, 4x4, m):
 
 - *map frame*: the local map's world. It starts as the backend's world at the first
-  mapped scan; every scan is put in the map at its registered pose ``T_map_scan``.
+  mapped scan; scans are put in the map at their registered pose ``T_map_scan``.
 - *anchor*: a keyframe whose map pose is fixed; a new one every ``keyframe_distance_m``.
   The factor of scan k is ``T_anchor_k = inv(T_map_anchor) @ T_map_k``: a relative pose
   between two graph variables, so it stays valid when the backend moves its world.
 
 Each step (:meth:`ScanToMap.step`, every ``every``-th scan): the guess ``T_map_k`` is the
-last mapped scan's map pose times the backend's current motion from that scan to k; the
+last registered scan's map pose times the backend's current motion from that scan to k; the
 scan's static points (downsampled to ``source_voxel_m``) are registered to the map by
 Open3D's point-to-plane ICP with a Tukey kernel. Point-to-plane, not KISS-ICP's
 point-to-point: on a simulated ``dt`` sequence with exact map poses, point-to-point to a
 voxel map was 4-8 cm off (the ground rings, which move with the sensor, pull it back),
 point-to-plane 0.3 cm. A result further than ``max_prior_*`` from the guess is not
-trusted (no factor; the map restarts at the scan). The scan (``map_voxel_m``, with normals
-from its own neighbours) then joins the map; scans more than ``max_distance_m`` from the
-newest, or beyond the last ``max_scans``, leave it. After a loop closure the backend's
+trusted (no factor; the map restarts at the scan). Every ``insert_every``-th registered
+scan (``map_voxel_m``, with normals from its own neighbours) then joins the map; the
+others only need their source cloud and are read at every ``source_stride``-th point.
+Scans more than ``max_distance_m`` from the newest, or beyond the last ``max_scans`` in
+the map, leave it. After a loop closure the backend's
 poses move: :meth:`ScanToMap.moved` carries the map rigidly with the latest pose.
 
 The covariance of a factor is the fixed ``rotation_std_deg``/``translation_std_m``
@@ -132,7 +134,8 @@ class ScanToMap:
         self._anchor: tuple[int, np.ndarray] | None = None
         """(index, T_map_anchor): the factors' first scan."""
         self._last: tuple[int, np.ndarray] | None = None
-        """(index, T_map_scan) of the last scan put in the map: the guess starts there."""
+        """(index, T_map_scan) of the last registered scan (in the map or not): the guess
+        starts there."""
         self._steps = 0
         self._registered = 0
         """Registered scans since the last one put in the map."""
