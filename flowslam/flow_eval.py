@@ -74,7 +74,7 @@ class FlowEvaluation:
         if prev is None or prev.gt_flow is None:
             return
         T_curr_prev = geometry.relative(self.gt_poses[frame.index], self.gt_poses[prev.index])
-        ego = geometry.transform_points(T_curr_prev, prev.points) - prev.points
+        ego = geometry.rigid_flow(T_curr_prev, prev.points)
         classes, ground = frame_labels(prev)
         dynamic = np.zeros(len(prev.points), bool) if prev.gt_dynamic is None else prev.gt_dynamic
         common = dict(gt=prev.gt_flow, dynamic=dynamic, classes=classes, ground=ground, points=prev.points, ego=ego)

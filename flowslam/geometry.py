@@ -76,6 +76,14 @@ def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
     return points_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
 
 
+def rigid_flow(T_b_a: np.ndarray, points_a: np.ndarray) -> np.ndarray:
+    """(N,3) scene flow of static points under a rigid motion: ``T_b_a p - p`` for (N,3)
+    points ``p`` of frame a (m); with ``T_b_a`` = ``T_{t+1,t}`` the flow of the static
+    world in the Argoverse 2 convention."""
+    points_a = np.asarray(points_a)
+    return transform_points(T_b_a, points_a) - points_a
+
+
 def relative(T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
     """``T_a_b`` from two poses of one trajectory (works on stacks too)."""
     return inv(T_world_a) @ T_world_b

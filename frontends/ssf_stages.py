@@ -386,7 +386,7 @@ class RigidStaticFlowStage:
             return
         p, static = state.prev.points, state.static
         state.flow = state.flow.copy()
-        state.flow[static] = geometry.transform_points(state.estimate.T_curr_prev, p[static]) - p[static]
+        state.flow[static] = geometry.rigid_flow(state.estimate.T_curr_prev, p[static])
 
 
 def build_stages(config: SsfConfig, flow_odometry: FlowOdometryConfig) -> list[Stage]:

@@ -21,7 +21,9 @@ __all__ = [
     "above_ground",
     "bev_cell_ids",
     "bev_clusters",
+    "dense_grid_shape",
     "grid_occupancy",
+    "grid_voxel_ids",
     "lowest_per_cell",
     "plane_normals",
 ]
@@ -104,6 +106,13 @@ def above_ground(points: np.ndarray, cell: float, clearance: float) -> np.ndarra
     return LocalGround(points, cell).above(clearance)
 
 
+def dense_grid_shape(lo: np.ndarray, hi: np.ndarray, cell: float) -> tuple[int, ...] | None:
+    """Voxels per axis of the dense grid with corner ``lo`` and voxel ``cell`` (m) that
+    covers up to ``hi``; None when it would hold more than ``MAX_GRID_CELLS`` voxels."""
+    shape = tuple(int(s) for s in np.floor((hi - lo) / cell) + 1)
+    return shape if np.prod(shape, dtype=np.float64) <= MAX_GRID_CELLS else None
+
+
 def grid_occupancy(points: np.ndarray, lo: np.ndarray, cell: float, shape: tuple[int, ...],
                    dilate: bool = False) -> np.ndarray:
     """Flat bool occupancy of the dense voxel grid (``lo`` its corner, ``cell`` its voxel,
@@ -118,7 +127,8 @@ def grid_occupancy(points: np.ndarray, lo: np.ndarray, cell: float, shape: tuple
     return grid
 
 
-def _voxel_ids(points: np.ndarray, lo: np.ndarray, cell: float, shape: tuple[int, ...]) -> np.ndarray:
+def grid_voxel_ids(points: np.ndarray, lo: np.ndarray, cell: float, shape: tuple[int, ...]) -> np.ndarray:
+    """Flat index (N,) of each point's voxel in that dense grid (indices clipped to it)."""
     ijk = np.floor((points - lo) / cell).astype(np.int64)
     return np.ravel_multi_index((ijk[:, 0], ijk[:, 1], ijk[:, 2]), shape, mode="clip")
 
@@ -181,11 +191,11 @@ class ScanSurface:
             return hit
         cell = radius / _SQRT3 * (1.0 - 1e-9)
         lo, hi = x.min(axis=0), x.max(axis=0)
-        shape = tuple(int(s) for s in np.floor((hi - lo) / cell) + 1)
-        if np.prod(shape, dtype=np.float64) <= MAX_GRID_CELLS:
+        shape = dense_grid_shape(lo, hi, cell)
+        if shape is not None:
             inside = np.all((self.points >= lo) & (self.points <= hi), axis=1)
             grid = grid_occupancy(self.points[inside], lo, cell, shape)
-            hit = grid[_voxel_ids(x, lo, cell, shape)]
+            hit = grid[grid_voxel_ids(x, lo, cell, shape)]
         rest = np.flatnonzero(~hit)
         hit[rest] = np.isfinite(self.tree.query(x[rest], distance_upper_bound=radius)[0])
         return hit

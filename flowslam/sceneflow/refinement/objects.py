@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from flowslam.geometry import transform_points
+from flowslam.geometry import rigid_flow, transform_points
 from flowslam.config.ssf import ObjectRefinementConfig
 from flowslam.sceneflow.refinement.clusters import ScanSurface, bev_clusters
 
@@ -186,7 +186,7 @@ def refine_objects(
         on_surface = np.isfinite(target_tree.query(rigid, distance_upper_bound=c.off_surface_m)[0])
         dynamic[rest[on_surface]] = False
     static = ~dynamic & ~settled
-    flow[static] = _rigid_flow(T_ego, source, static)
+    flow[static] = rigid_flow(T_ego, source[static])
     stats = {
         "object_candidates": int(cand.size),
         "objects": len(objects),
@@ -200,12 +200,6 @@ def refine_objects(
 def object_target_range(c: ObjectRefinementConfig) -> float:
     """Horizontal range (m) of the target points the objects are registered to."""
     return c.max_range_m + c.margin_m + 5.0
-
-
-def _rigid_flow(T: np.ndarray, source: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(mask.sum(),3) flow ``T p - p`` of the points ``source[mask]``."""
-    p = source[mask]
-    return p @ (T[:3, :3] - np.eye(3)).T + T[:3, 3]
 
 
 def _clusters(source: np.ndarray, cand: np.ndarray, c: ObjectRefinementConfig) -> list[np.ndarray]:

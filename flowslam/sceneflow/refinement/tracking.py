@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from flowslam.geometry import transform_points
+from flowslam.geometry import rigid_flow, transform_points
 from flowslam.sceneflow.refinement.clusters import (
-    MAX_GRID_CELLS,
     LocalGround,
     above_ground,
+    dense_grid_shape,
     grid_occupancy,
+    grid_voxel_ids,
 )
 
 __all__ = ["MoverPrior"]
@@ -70,7 +71,7 @@ class MoverPrior:
         idx, j = self._near_landing(points)
         mask[idx] = True
         p = points[idx]
-        flow[idx] = transform_points(T_ego, p) - p + self._motion[j] @ T_ego[:3, :3].T
+        flow[idx] = rigid_flow(T_ego, p) + self._motion[j] @ T_ego[:3, :3].T
         return mask, flow
 
     def _near_landing(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -82,11 +83,10 @@ class MoverPrior:
         r = self.radius_m
         lo, hi = self._landing.min(axis=0) - r, self._landing.max(axis=0) + r
         inside = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
-        shape = tuple(int(s) for s in np.floor((hi - lo) / r) + 1) if r > 0 else (0,)
-        if r > 0 and np.prod(shape, dtype=np.float64) <= MAX_GRID_CELLS:
+        shape = dense_grid_shape(lo, hi, r) if r > 0 else None
+        if shape is not None:
             grid = grid_occupancy(self._landing, lo, r, shape, dilate=True)
-            ijk = np.minimum(np.floor((points[inside] - lo) / r).astype(np.int64), np.array(shape) - 1)
-            inside = inside[grid[np.ravel_multi_index((ijk[:, 0], ijk[:, 1], ijk[:, 2]), shape)]]
+            inside = inside[grid[grid_voxel_ids(points[inside], lo, r, shape)]]
         dist, j = cKDTree(self._landing).query(points[inside], distance_upper_bound=r)
         hit = np.isfinite(dist)
         return inside[hit], j[hit]
