@@ -603,6 +603,57 @@ def train_command(
             typer.echo(f"weights: {export} (sha256 {digest})")
 
 
+@app.command("adapt")
+def adapt_command(
+    sequences: Annotated[list[Path], typer.Argument(
+        help="Unlabelled sequences, in any format `run` reads (their GT, if any, is used only in the report).")],
+    weights_out: Annotated[Path, typer.Option(
+        "--weights-out", help="Write the adapted weights here (+ FILE.sha256); `run --weights FILE` uses them.")],
+    weights: Weights = None,
+    config: Annotated[Optional[Path], typer.Option(
+        "--config", "-c", help="Run config YAML: its ssf: section makes the teacher, its adapt: section the run.")] = None,
+    out_dir: Annotated[Optional[Path], typer.Option(
+        "--out-dir", "-o", help="Teacher cache, checkpoints and report (default runs/adapt).")] = None,
+    epochs: Annotated[Optional[int], typer.Option("--epochs", help="Passes over the training pairs.")] = None,
+    holdout: Annotated[Optional[float], typer.Option(
+        "--holdout", help="Fraction of each sequence's last frames never trained on (0.2 default).")] = None,
+    max_minutes: Annotated[Optional[float], typer.Option(
+        "--max-minutes", help="Stop after this much wall time (teacher included).")] = None,
+    first: First = None,
+    max_frames: MaxFrames = None,
+    resume: Annotated[bool, typer.Option(
+        "--resume", help="Continue from OUT_DIR/checkpoint_last.pt (same weights and sequences).")] = False,
+    no_progress: NoProgress = False,
+):
+    """Fine-tune the scene-flow network on your own unlabelled sequences (self-supervised, CPU by default)."""
+    with _user_errors():
+        from rich.console import Console
+        from rich.table import Table
+
+        from flowslam.config import load_config
+        from flowslam.sceneflow.adapt import adapt
+
+        cfg = load_config(config, **{
+            "ssf.network.weights": weights and str(weights), "dataset.first_frame": first,
+            "dataset.max_frames": max_frames, "adapt.out_dir": out_dir and str(out_dir), "adapt.epochs": epochs,
+            "adapt.holdout_fraction": holdout, "adapt.max_minutes": max_minutes})
+        result = adapt(sequences, cfg, weights_out, resume=resume, progress=not no_progress)
+        table = Table(title=f"network-only ssf on the held-out frames (best epoch {result['best_epoch']}, "
+                            f"{result['minutes']:.1f} min)")
+        for column in ("sequence", "measure", "starting weights", "adapted"):
+            table.add_column(column, justify="left" if column in ("sequence", "measure") else "right")
+        for seq, both in result["report"].items():
+            start, adapted = both["start"], both["adapted"]
+            flat = lambda d: {**{k: v for k, v in d.items() if k != "gt_flow"},  # noqa: E731
+                              **{f"GT {k}": v for k, v in d.get("gt_flow", {}).items()}}
+            start, adapted = flat(start), flat(adapted)
+            for key in start:
+                table.add_row(Path(seq).name, key, f"{start[key]:.4f}", f"{adapted.get(key, float('nan')):.4f}")
+        Console().print(table)
+        typer.echo(f"weights: {result['weights']} (sha256 {result['sha256']}); "
+                   f"report: {Path(cfg.adapt.out_dir) / 'report.json'}")
+
+
 @app.command("view")
 def view_command(
     results: Annotated[Path, typer.Argument(help="A results folder of `flowslam run` (e.g. results/latest).")],

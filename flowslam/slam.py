@@ -314,6 +314,7 @@ class Slam:
             "flowslam_version": __version__,
             "python": platform.python_version(),
             "frontend": getattr(self.frontend, "name", type(self.frontend).__name__),
+            "frontend_info": getattr(self.frontend, "info", None),
             "backend": getattr(self.backend, "name", type(self.backend).__name__),
             "loop_closure": self.loop_closer is not None,
             "frames_processed": len(r.indices),

@@ -73,6 +73,8 @@ class SsfFrontend:
         self.name = name or self.name
         network = next(s for s in self.stages if isinstance(s, NetworkStage))
         self.num_frames = network.num_frames
+        self.info = {"weights": network.weights_info}
+        """What ``run.json`` records about this frontend (``frontend_info``)."""
         self._frames: deque[Frame] = deque(maxlen=self.num_frames - 1)
         self._poses: deque[np.ndarray] = deque(maxlen=self.num_frames - 1)  # own T_world_sensor estimates
         self._last_motion = np.eye(4)

@@ -8,9 +8,10 @@ from here, never the reverse. ``PipelineConfig`` holds them all (one YAML file):
 - ``ssf`` with one section per stage (:mod:`.ssf`);
 - ``isam2`` (:mod:`.isam2`), ``loop_closure`` (:mod:`.loop_closure`) and ``mapping``
   (:mod:`.mapping`);
-- ``training`` (:mod:`.training`).
+- ``training`` (:mod:`.training`) and ``adapt`` (:mod:`.adapt`).
 """
 
+from flowslam.config.adapt import AdaptConfig, AdaptLossWeights
 from flowslam.config.baselines import RansacConfig
 from flowslam.config.dataset import DatasetConfig
 from flowslam.config.describe import dump_config, missing_descriptions
@@ -27,7 +28,7 @@ from flowslam.config.ssf import (
 from flowslam.config.training import PriorNoise, TrainConfig
 
 __all__ = [
-    "DatasetConfig", "FlowOdometryConfig", "FlowRefinementConfig", "Isam2Config", "KissIcpConfig",
+    "AdaptConfig", "AdaptLossWeights", "DatasetConfig", "FlowOdometryConfig", "FlowRefinementConfig", "Isam2Config", "KissIcpConfig",
     "LoopClosureConfig", "MappingConfig", "MotionEvidenceConfig", "NetworkStageConfig", "ObjectRefinementConfig",
     "OutputConfig", "PipelineConfig", "PoseStartConfig", "PriorNoise", "RansacConfig", "ScanContextConfig",
     "SsfConfig", "TrainConfig", "VARIANTS", "VerificationConfig", "dump_config", "load_config",

@@ -13,6 +13,7 @@ from pathlib import Path
 import yaml
 from pydantic import BaseModel, ValidationError
 
+from flowslam.config.adapt import AdaptConfig
 from flowslam.config.base import StrictModel
 from flowslam.config.baselines import RansacConfig
 from flowslam.config.dataset import DatasetConfig
@@ -55,6 +56,8 @@ class PipelineConfig(StrictModel):
     """Scan-to-map registration (LOAM's mapping stage) for backends with factors (``isam2``)."""
     training: TrainConfig = TrainConfig()
     """``flowslam train``: training the scene-flow network."""
+    adapt: AdaptConfig = AdaptConfig()
+    """``flowslam adapt``: self-supervised fine-tuning of the network on unlabelled sequences."""
 
     @property
     def variant(self) -> str:

@@ -1,0 +1,115 @@
+"""How the adapted weights compare with the starting ones on the held-out tails.
+
+Each set of weights runs as the network-only ``ssf`` frontend (``ssf.refine.enabled:
+false``: the network's flow and segmentation, flow-to-pose odometry, no test-time
+refinement) through the same frame loop as ``flowslam run`` (``run_pipeline``, odometry
+backend) over every sequence's held-out frames, which training never saw. Measured per
+sequence:
+
+- without labels: ``data_term_m``, the mean distance of each warped point of scan
+  k-1 (``p + flow``) to its nearest point of scan k (capped at ``adapt.truncate_m``);
+  ``teacher_epe_m``, the mean end-point error against the refined pipeline's flow;
+  ``teacher_dynamic_iou``, the dynamic IoU against the teacher's segmentation;
+- with ground truth, where the reader has it: ``rpe1_trans_m`` (RPE over one frame,
+  translation RMSE against the GT poses) and, with GT flow, the ``flow-eval`` metrics
+  (``EPE3D``, ``DynamicIoU``, ...) under ``gt_flow``.
+
+Lengths in metres.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from flowslam.config import PipelineConfig
+from flowslam.frame import Frame
+from flowslam.interfaces import FrontendOutput
+
+
+class _SelfSupervisedScores:
+    """Output sink: the label-free measures of the module doc, over the pairs it sees."""
+
+    def __init__(self, teacher, truncate_m: float):
+        self.teacher = teacher
+        self.truncate_m = truncate_m
+        self._prev: Frame | None = None
+        self.data: list[float] = []
+        self.epe: list[np.ndarray] = []
+        self.pred_dyn: list[np.ndarray] = []
+        self.teacher_dyn: list[np.ndarray] = []
+
+    def on_output(self, frame: Frame, out: FrontendOutput) -> None:
+        from scipy.spatial import cKDTree
+
+        prev, self._prev = self._prev, frame
+        if prev is None or out.flow is None:
+            return
+        warped = out.points + out.flow
+        distance, _ = cKDTree(frame.points).query(warped, k=1)
+        self.data.append(float(np.minimum(distance, self.truncate_m).mean()))
+        pair = self.teacher.pairs.get(frame.index)
+        if pair is not None and len(pair.flow) == len(out.flow):
+            self.epe.append(np.linalg.norm(out.flow - pair.flow, axis=1))
+            static = np.ones(len(out.flow), bool) if out.static_mask is None else np.asarray(out.static_mask, bool)
+            self.pred_dyn.append(~static)
+            self.teacher_dyn.append(~pair.static)
+
+    def result(self) -> dict:
+        from flowslam.sceneflow.metrics import dynamic_iou
+
+        if not self.data:
+            return {}
+        out = {"data_term_m": float(np.mean(self.data))}
+        if self.epe:
+            out["teacher_epe_m"] = float(np.mean(np.concatenate(self.epe)))
+            out["teacher_dynamic_iou"] = dynamic_iou(np.concatenate(self.pred_dyn), np.concatenate(self.teacher_dyn))
+        return out
+
+
+def network_only(config: PipelineConfig, weights: Path) -> PipelineConfig:
+    """``config`` with the network-only ``ssf`` (no refinement) and these weights."""
+    config = config.model_copy(deep=True)
+    config.ssf.refine.enabled = False
+    config.ssf.network.weights = Path(weights)
+    return config
+
+
+def score_weights(sequence, config: PipelineConfig, weights: Path) -> dict:
+    """The module doc's measures of network-only ``ssf`` with ``weights`` on the held-out
+    frames of ``sequence`` (a ``loop.Sequence`` with its teacher)."""
+    from flowslam.evaluation.rpe import rpe
+    from flowslam.flow_eval import FlowEvaluation
+    from flowslam.pipeline import run_pipeline
+    from flowslam.registry import make_backend, make_frontend
+
+    cfg = network_only(config, weights)
+    frames = sequence.holdout_frames
+    scores = _SelfSupervisedScores(sequence.teacher, config.adapt.truncate_m)
+    gt_poses = sequence.dataset.gt_poses
+    flow_sink = FlowEvaluation(np.asarray(gt_poses)) if gt_poses is not None else None
+
+    def on_output(frame: Frame, out: FrontendOutput) -> None:
+        scores.on_output(frame, out)
+        if flow_sink is not None:
+            flow_sink.on_output(frame, out)
+
+    result = run_pipeline(sequence.dataset, make_frontend("ssf", cfg), make_backend("odometry", cfg),
+                          frames, on_output=on_output)
+    if result.error is not None:
+        raise result.error
+    out = scores.result()
+    if gt_poses is not None and len(result.poses) >= 2:
+        gt = np.asarray(gt_poses)[result.indices]
+        out["rpe1_trans_m"] = rpe(result.poses, gt, delta=1)["rmse"]
+        flow = flow_sink.result("ssf")["flow"]
+        if flow:
+            out["gt_flow"] = {k: flow[k] for k in ("EPE3D", "AccStrict", "EPE_3way", "EPE_FD", "DynamicIoU") if k in flow}
+    return out
+
+
+def compare_on_holdout(sequences, config: PipelineConfig, init_path: Path, adapted_path: Path) -> dict:
+    """``{sequence path: {"start": scores, "adapted": scores}}`` (``score_weights``)."""
+    return {str(seq.path): {"start": score_weights(seq, config, init_path),
+                            "adapted": score_weights(seq, config, adapted_path)} for seq in sequences}
