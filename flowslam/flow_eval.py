@@ -58,11 +58,13 @@ class FlowEvaluation:
     """Output sink of ``run_pipeline``: flow metrics of a frontend's outputs and of
     ``ego-gt``, and its ego-motion error (translation m, rotation deg per step).
 
-    ``gt_poses`` are the dataset's ``T_world_sensor`` by dataset index.
+    ``gt_poses`` are the dataset's ``T_world_sensor`` by dataset index; ``scored``, when
+    given, the dataset indices of the newest scans of the only pairs to score.
     """
 
-    def __init__(self, gt_poses: np.ndarray):
+    def __init__(self, gt_poses: np.ndarray, scored: set[int] | None = None):
         self.gt_poses = gt_poses
+        self.scored = scored
         self.method, self.reference = _Accumulator(), _Accumulator()
         self.ego_t: list[float] = []
         self.ego_r: list[float] = []
@@ -71,7 +73,7 @@ class FlowEvaluation:
 
     def on_output(self, frame: Frame, out: FrontendOutput) -> None:
         prev, self._prev = self._prev, frame
-        if prev is None or prev.gt_flow is None:
+        if prev is None or prev.gt_flow is None or (self.scored is not None and frame.index not in self.scored):
             return
         T_curr_prev = geometry.relative(self.gt_poses[frame.index], self.gt_poses[prev.index])
         ego = geometry.rigid_flow(T_curr_prev, prev.points)

@@ -201,9 +201,11 @@ def test_semantic_consistency_loss_hand_value_and_gradients():
     assert torch.autograd.gradcheck(lambda z: semantic_consistency_loss(flow.detach(), z, ego, 0.1), (logit,))
 
 
-def _bce(logit: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+def _bce(logit: torch.Tensor, y: torch.Tensor, max_pos_weight: float = 10.0) -> torch.Tensor:
+    """BCE whose positive terms weigh negatives / positives (between 1 and ``max_pos_weight``)."""
     p = torch.sigmoid(logit)
-    return -(y * torch.log(p) + (1 - y) * torch.log(1 - p)).mean()
+    w = min(max(1.0, float((1 - y).sum() / max(float(y.sum()), 1.0))), max_pos_weight)
+    return -(w * y * torch.log(p) + (1 - y) * torch.log(1 - p)).mean()
 
 
 @pytest.mark.parametrize("bce_weight", [0.2, 0.5])
@@ -214,6 +216,16 @@ def test_distillation_loss_is_scene_adaptive_plus_weighted_bce(bce_weight):
     loss = distillation_loss(res, logit, teacher, dyn, bce_weight=bce_weight)
     expected = scene_adaptive_loss(res, teacher) + bce_weight * _bce(logit, dyn.to(D))
     assert loss.item() == pytest.approx(float(expected), abs=1e-12)
+
+
+@pytest.mark.parametrize("max_pos_weight, weight", [(10.0, 10.0), (4.0, 4.0), (1.0, 1.0), (50.0, 39.0)])
+def test_distillation_bce_weighs_rare_dynamic_points_up(max_pos_weight, weight):
+    logit, dyn = torch.zeros(40, dtype=D), torch.zeros(40, dtype=torch.bool)
+    dyn[3] = True  # 1 dynamic point of 40: negatives / positives = 39
+    flow = torch.zeros(40, 3, dtype=D)
+    loss = distillation_loss(flow, logit, flow, dyn, bce_weight=1.0, max_pos_weight=max_pos_weight)
+    # every term is log 2 (logit 0): (39 + weight) * log 2 / 40
+    assert loss.item() == pytest.approx((39 + weight) * np.log(2) / 40, abs=1e-12)
 
 
 def test_distillation_loss_mask_restricts_to_masked_rows():

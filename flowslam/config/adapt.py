@@ -24,13 +24,15 @@ class AdaptLossWeights(StrictModel):
     """The teacher's refined flow (scene-adaptive loss on the residual flow)."""
     distill_bce: float = Field(0.2, ge=0)
     """The teacher's dynamic labels (binary cross-entropy of the dynamic logit), inside ``distill``."""
-    data: float = Field(0.5, ge=0)
+    max_pos_weight: float = Field(10.0, ge=1)
+    """The BCE weighs the rare dynamic points up to this much (negatives / positives)."""
+    data: float = Field(0.2, ge=0)
     """Truncated nearest-neighbour distance of the warped source to scan k."""
-    motion: float = Field(0.5, ge=0)
+    motion: float = Field(0.2, ge=0)
     """L_mot: each segment of the teacher's segmentation moves rigidly."""
-    consistency: float = Field(0.2, ge=0)
+    consistency: float = Field(0.1, ge=0)
     """L_SC: dynamic probability and departure from the ego motion agree."""
-    rigid_chamfer: float = Field(0.5, ge=0)
+    rigid_chamfer: float = Field(0.2, ge=0)
     """L_CD: the source moved segment by segment lands on scan k."""
 
 
@@ -44,9 +46,9 @@ class AdaptConfig(StrictModel):
     stops the adaptation early and the report compares the models there."""
     epochs: int = Field(8, ge=1)
     """Passes over the training pairs (OneCycle schedule length)."""
-    patience: int = Field(3, ge=1)
+    patience: int = Field(4, ge=1)
     """Stop when the held-out teacher EPE has not improved for this many epochs."""
-    lr: float = Field(5e-4, gt=0)
+    lr: float = Field(2e-4, gt=0)
     """Peak learning rate (OneCycle)."""
     weight_decay: float = Field(1e-4, ge=0)
     """AdamW weight decay."""
@@ -54,6 +56,9 @@ class AdaptConfig(StrictModel):
     """Pairs per optimiser step."""
     max_points: int | None = Field(None, ge=16)
     """Points sampled per frame; None: the run config's ``ssf.network.max_points``."""
+    freeze_norm: bool = True
+    """Keep the BatchNorm statistics of the starting weights (their affine parameters
+    still learn): a batch of one or two scans is too small to re-estimate them."""
     loss: AdaptLossWeights = AdaptLossWeights()
     """Weights of the loss terms."""
     truncate_m: float = Field(2.0, gt=0)
@@ -63,10 +68,12 @@ class AdaptConfig(StrictModel):
     min_segment_points: int = Field(10, ge=3)
     """Segments with fewer points are left out of L_mot and L_CD."""
     prior_noise: PriorNoise = PriorNoise(
-        max_translation_m=0.3, max_yaw_deg=1.0, max_z_m=0.05, max_roll_pitch_deg=0.2, p_no_prior=0.0,
-        scale_exponent=1.0,
+        max_translation_m=0.3, max_yaw_deg=1.0, max_z_m=0.05, max_roll_pitch_deg=0.2, older_step_fraction=0.1,
+        p_no_prior=0.0, scale_exponent=1.0,
     )
-    """Extra error put on the system's own ego prior of the newest scan (augmentation)."""
+    """Extra errors put on the system's own ego priors (augmentation): full size on the
+    constant-velocity guess of the newest scan, ``older_step_fraction`` of it on each
+    older step."""
     seed: int = 0
     """Sampling, augmentation and shuffling seed."""
     max_minutes: float | None = Field(None, gt=0)

@@ -8,10 +8,12 @@
    system's own poses, plus augmentation) and minimises
    ``distill + data + L_mot + L_SC + L_CD`` (weights ``adapt.loss``; terms in
    ``flowslam.sceneflow.network.self_supervised``).
-4. After every epoch the held-out tail's pairs are scored (teacher EPE, data term,
-   dynamic IoU against the teacher); the best epoch by teacher EPE is kept and the run
-   stops after ``patience`` epochs without improvement. Epoch "0" is the starting
-   weights: if no epoch beats them, the written weights are the starting ones.
+4. After every epoch the held-out tail's pairs are scored in pipeline conditions (the
+   network-only ``ssf`` run over the tail with its own poses, ``report.score_weights``:
+   teacher EPE, data term, dynamic IoU against the teacher; no GT); the best epoch by
+   teacher EPE is kept and the run stops after ``patience`` epochs without improvement.
+   Epoch "0" is the starting weights: if no epoch beats them, the written weights are
+   the starting ones.
 5. The best weights are written with their SHA-256 sidecar; ``report.py`` compares them
    with the starting weights on the tails in pipeline conditions.
 
@@ -62,6 +64,12 @@ class Sequence:
     @property
     def holdout_frames(self) -> list[int]:
         return self.frames[self.tail_start:]
+
+    def scoring_frames(self, num_frames: int) -> list[int]:
+        """The frames a held-out score runs over: the tail and the ``num_frames`` scans
+        before it (they give the network its history and the run its velocity; their
+        pairs are not scored)."""
+        return self.frames[max(0, self.tail_start - num_frames):]
 
 
 def split_frames(n: int, holdout_fraction: float) -> int:
@@ -114,7 +122,8 @@ def pair_loss(out: dict, s: AdaptSample, config: PipelineConfig, rows: slice) ->
     if w.distill:
         parts["distill"] = w.distill * ss.distillation_loss(
             residual, logit, torch.from_numpy(s.sample.residual).to(dev),
-            torch.from_numpy(s.sample.dynamic.astype(np.float32)).to(dev), mask=valid, bce_weight=w.distill_bce)
+            torch.from_numpy(s.sample.dynamic.astype(np.float32)).to(dev), mask=valid, bce_weight=w.distill_bce,
+            max_pos_weight=w.max_pos_weight)
     need_tree = w.data or w.rigid_chamfer
     tree = None
     if need_tree:
@@ -147,32 +156,14 @@ def _forward(model, samples: list[AdaptSample], device: torch.device) -> tuple[d
 # -- held-out scores --------------------------------------------------------------------------
 
 
-@torch.no_grad()
-def holdout_scores(model, samples: list[AdaptSample], device: torch.device, truncate_m: float) -> dict:
-    """Scores of ``model`` on held-out pairs (no labels): mean EPE against the teacher's
-    flow (m), mean truncated nearest-neighbour distance of the warped source to scan k
-    (m) and the IoU of its dynamic points with the teacher's."""
-    from flowslam.sceneflow.metrics import dynamic_iou
-    from flowslam.sceneflow.network.self_supervised import chamfer_to_scan
+def holdout_score(sequences: list[Sequence], config: PipelineConfig, weights: Path, num_frames: int) -> dict:
+    """Label-free scores of ``weights`` on the held-out pairs in pipeline conditions
+    (``report.score_weights`` without GT), averaged over the sequences."""
+    from flowslam.sceneflow.adapt.report import score_weights
 
-    model.eval()
-    epe, data, pred_dyn, teacher_dyn = [], [], [], []
-    for s in samples:
-        out, _ = _forward(model, [s], device)
-        residual = out["flow"].float().cpu()
-        src = torch.from_numpy(s.sample.source_points)
-        flow = torch.from_numpy(s.sample.points[-2]) - src + residual
-        epe.append(torch.linalg.vector_norm(flow - torch.from_numpy(s.teacher_flow), dim=1).numpy())
-        data.append(float(chamfer_to_scan(src + flow, s.target, truncate_m)))
-        pred_dyn.append(out["dynamic_logit"].float().cpu().numpy() > 0)
-        teacher_dyn.append(s.sample.dynamic)
-    if not samples:
-        return {}
-    return {
-        "teacher_epe_m": float(np.mean(np.concatenate(epe))),
-        "data_term_m": float(np.mean(data)),
-        "teacher_dynamic_iou": dynamic_iou(np.concatenate(pred_dyn), np.concatenate(teacher_dyn)),
-    }
+    per_seq = [score_weights(seq, config, weights, num_frames, with_gt=False) for seq in sequences]
+    keys = set.intersection(*(set(s) for s in per_seq)) if per_seq else set()
+    return {k: float(np.nanmean([s[k] for s in per_seq])) for k in sorted(keys)}
 
 
 # -- the run ----------------------------------------------------------------------------------
@@ -226,8 +217,13 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
         num_frames = model.config.num_frames
         max_points = a.max_points or config.ssf.network.max_points
         items = [(d, k) for d, seq in enumerate(sequences) for k in seq.train_pairs]
-        held = [adapt_sample(seq.dataset, seq.teacher, k, num_frames, max_points)
-                for seq in sequences for k in seq.holdout_pairs]
+        model_config = payload["model_config"]
+        scratch = out_dir / "epoch_weights.pt"
+
+        def score() -> dict:
+            save_weights(scratch, model_config, model.state_dict())
+            return holdout_score(sequences, config, scratch, num_frames)
+
         torch.manual_seed(a.seed)
         optimizer = torch.optim.AdamW(model.parameters(), lr=a.lr, weight_decay=a.weight_decay)
         steps_per_epoch = math.ceil(len(items) / a.batch_size)
@@ -244,7 +240,7 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
             history, best, best_state = ckpt["history"], ckpt["best"], ckpt["best_state"]
             best_epoch, start = ckpt["best_epoch"], ckpt["epoch"] + 1
         else:
-            start_scores = holdout_scores(model, held, device, a.truncate_m)
+            start_scores = holdout_score(sequences, config, init_path, num_frames)
             history = [{"epoch": 0, "minutes": (time.monotonic() - t0) / 60, **_prefixed(start_scores)}]
             best = start_scores.get("teacher_epe_m", math.inf)
             best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
@@ -252,7 +248,7 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
         for epoch in range(start, a.epochs + 1):
             rng = np.random.default_rng([a.seed, epoch])
             order = rng.permutation(len(items))
-            model.train()
+            _train_mode(model, a.freeze_norm)
             bar.stage(f"epoch {epoch}/{a.epochs}", steps_per_epoch)
             sums: dict[str, float] = {}
             for b in range(steps_per_epoch):
@@ -271,7 +267,7 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
                     for key, v in parts.items():
                         sums[key] = sums.get(key, 0.0) + v / len(items)
                 bar.advance(loss=float(loss.detach()))
-            scores = holdout_scores(model, held, device, a.truncate_m)
+            scores = score()
             record = {"epoch": epoch, "minutes": (time.monotonic() - t0) / 60,
                       **{f"train_{k}": v for k, v in sums.items()}, **_prefixed(scores)}
             history.append(record)
@@ -289,6 +285,8 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
                 break
     finally:
         bar.stop()
+    for stale in (scratch, scratch.with_name(scratch.name + ".sha256")):
+        stale.unlink(missing_ok=True)
     meta = {"adapted_from": str(init_path), "adapted_from_sha256": init_hash, "best_epoch": best_epoch,
             "holdout_teacher_epe_m": best, "sequences": [str(s.path) for s in sequences],
             "train_pairs": {str(s.path): s.train_pairs for s in sequences},
@@ -296,13 +294,22 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
             "adapt_config": json.loads(a.model_dump_json())}
     digest = save_weights(weights_out, payload["model_config"], best_state, meta)
     minutes = (time.monotonic() - t0) / 60
-    report = compare_on_holdout(sequences, config, init_path, Path(weights_out))
+    report = compare_on_holdout(sequences, config, init_path, Path(weights_out), num_frames)
     result = {"weights": str(weights_out), "sha256": digest, "best_epoch": best_epoch, "minutes": minutes,
               "history": history, "report": report,
               "split": {str(s.path): {"train_frames": [s.frames[0], s.frames[s.tail_start - 1]],
                                       "holdout_frames": [s.frames[s.tail_start], s.frames[-1]]} for s in sequences}}
     (out_dir / "report.json").write_text(json.dumps(result, indent=2, default=str))
     return result
+
+
+def _train_mode(model: torch.nn.Module, freeze_norm: bool) -> None:
+    """Training mode, with the BatchNorm layers left in eval mode when ``freeze_norm``."""
+    model.train()
+    if freeze_norm:
+        for module in model.modules():
+            if isinstance(module, torch.nn.modules.batchnorm._BatchNorm):
+                module.eval()
 
 
 def _prefixed(scores: dict) -> dict:

@@ -3,7 +3,10 @@
 Each set of weights runs as the network-only ``ssf`` frontend (``ssf.refine.enabled:
 false``: the network's flow and segmentation, flow-to-pose odometry, no test-time
 refinement) through the same frame loop as ``flowslam run`` (``run_pipeline``, odometry
-backend) over every sequence's held-out frames, which training never saw. Measured per
+backend) from a few scans before the held-out tail (``Sequence.scoring_frames``), so
+that the held-out scans get the history and the own poses of a continuous run; only
+the held-out pairs (both scans in the tail, which training never saw) are scored.
+``adapt`` scores every epoch this way (without GT) to pick the best one. Measured per
 sequence:
 
 - without labels: ``data_term_m``, the mean distance of each warped point of scan
@@ -31,8 +34,9 @@ from flowslam.interfaces import FrontendOutput
 class _SelfSupervisedScores:
     """Output sink: the label-free measures of the module doc, over the pairs it sees."""
 
-    def __init__(self, teacher, truncate_m: float):
+    def __init__(self, teacher, truncate_m: float, scored: set[int]):
         self.teacher = teacher
+        self.scored = scored
         self.truncate_m = truncate_m
         self._prev: Frame | None = None
         self.data: list[float] = []
@@ -44,7 +48,7 @@ class _SelfSupervisedScores:
         from scipy.spatial import cKDTree
 
         prev, self._prev = self._prev, frame
-        if prev is None or out.flow is None:
+        if prev is None or out.flow is None or frame.index not in self.scored:
             return
         warped = out.points + out.flow
         distance, _ = cKDTree(frame.points).query(warped, k=1)
@@ -76,19 +80,21 @@ def network_only(config: PipelineConfig, weights: Path) -> PipelineConfig:
     return config
 
 
-def score_weights(sequence, config: PipelineConfig, weights: Path) -> dict:
+def score_weights(sequence, config: PipelineConfig, weights: Path, num_frames: int, with_gt: bool = True) -> dict:
     """The module doc's measures of network-only ``ssf`` with ``weights`` on the held-out
-    frames of ``sequence`` (a ``loop.Sequence`` with its teacher)."""
+    pairs of ``sequence`` (a ``loop.Sequence`` with its teacher); ``num_frames``: the
+    network's input scans (the run starts that many scans before the tail). The GT
+    measures only ``with_gt`` (and where the reader has GT)."""
     from flowslam.evaluation.rpe import rpe
     from flowslam.flow_eval import FlowEvaluation
     from flowslam.pipeline import run_pipeline
     from flowslam.registry import make_backend, make_frontend
 
     cfg = network_only(config, weights)
-    frames = sequence.holdout_frames
-    scores = _SelfSupervisedScores(sequence.teacher, config.adapt.truncate_m)
-    gt_poses = sequence.dataset.gt_poses
-    flow_sink = FlowEvaluation(np.asarray(gt_poses)) if gt_poses is not None else None
+    scored = set(sequence.holdout_pairs)
+    scores = _SelfSupervisedScores(sequence.teacher, config.adapt.truncate_m, scored)
+    gt_poses = sequence.dataset.gt_poses if with_gt else None
+    flow_sink = FlowEvaluation(np.asarray(gt_poses), scored) if gt_poses is not None else None
 
     def on_output(frame: Frame, out: FrontendOutput) -> None:
         scores.on_output(frame, out)
@@ -96,20 +102,21 @@ def score_weights(sequence, config: PipelineConfig, weights: Path) -> dict:
             flow_sink.on_output(frame, out)
 
     result = run_pipeline(sequence.dataset, make_frontend("ssf", cfg), make_backend("odometry", cfg),
-                          frames, on_output=on_output)
+                          sequence.scoring_frames(num_frames), on_output=on_output)
     if result.error is not None:
         raise result.error
     out = scores.result()
-    if gt_poses is not None and len(result.poses) >= 2:
-        gt = np.asarray(gt_poses)[result.indices]
-        out["rpe1_trans_m"] = rpe(result.poses, gt, delta=1)["rmse"]
+    if gt_poses is not None:
+        rows = [result.indices.index(i) for i in sequence.holdout_frames]
+        out["rpe1_trans_m"] = rpe(result.poses[rows], np.asarray(gt_poses)[sequence.holdout_frames], delta=1)["rmse"]
         flow = flow_sink.result("ssf")["flow"]
         if flow:
             out["gt_flow"] = {k: flow[k] for k in ("EPE3D", "AccStrict", "EPE_3way", "EPE_FD", "DynamicIoU") if k in flow}
     return out
 
 
-def compare_on_holdout(sequences, config: PipelineConfig, init_path: Path, adapted_path: Path) -> dict:
+def compare_on_holdout(sequences, config: PipelineConfig, init_path: Path, adapted_path: Path,
+                       num_frames: int) -> dict:
     """``{sequence path: {"start": scores, "adapted": scores}}`` (``score_weights``)."""
-    return {str(seq.path): {"start": score_weights(seq, config, init_path),
-                            "adapted": score_weights(seq, config, adapted_path)} for seq in sequences}
+    return {str(seq.path): {"start": score_weights(seq, config, init_path, num_frames),
+                            "adapted": score_weights(seq, config, adapted_path, num_frames)} for seq in sequences}

@@ -4,8 +4,8 @@
 The T scans ``k-T+1 .. k`` (the first scan of the run repeated at its start, as
 inference does) are moved into scan k's sensor frame with the system's *own* pose
 estimates (the teacher's chained odometry) and a constant-velocity guess of scan k,
-optionally with an extra random error on that guess (augmentation). No ground truth
-is read. Lengths in metres, flows in metres per frame, sensor frame k unless noted.
+optionally with extra random errors (augmentation: a network-only run's own poses
+are less accurate than the teacher's). No ground truth is read. Lengths in metres, flows in metres per frame, sensor frame k unless noted.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from flowslam import geometry
 from flowslam.config.training import PriorNoise
 from flowslam.frame import Dataset
 from flowslam.sceneflow.adapt.teacher import Teacher, ego_flow
-from flowslam.sceneflow.network.samples import Sample, frames_to_sample, prior_perturbation
+from flowslam.sceneflow.network.samples import Sample, frames_to_sample, noisy_priors
 
 
 @dataclass
@@ -47,32 +47,38 @@ def window(frames: list[int], k: int, num_frames: int) -> list[int]:
     return [frames[max(0, pos - num_frames + 1 + t)] for t in range(num_frames)]
 
 
-def own_priors(teacher: Teacher, indices: list[int]) -> list[np.ndarray]:
-    """``T_new_old`` of each input scan from the teacher's own poses, the newest scan's
-    pose guessed at constant velocity (the last step repeated), as the frontend does."""
+def own_poses(teacher: Teacher, indices: list[int]) -> np.ndarray:
+    """(T,4,4) ``T_world_sensor`` of the input scans from the teacher's own estimates, the
+    newest one guessed at constant velocity (the last step repeated), as the frontend does."""
     k = indices[-1]
     pos = teacher.frames.index(k)
     prev = teacher.frames[pos - 1]
     step = (geometry.relative(teacher.poses[teacher.frames[pos - 2]], teacher.poses[prev])
             if pos >= 2 else np.eye(4))
-    T_new_world = geometry.inv(teacher.poses[prev] @ step)
-    return [T_new_world @ teacher.poses[i] for i in indices[:-1]] + [np.eye(4)]
+    return np.stack([teacher.poses[i] for i in indices[:-1]] + [teacher.poses[prev] @ step])
+
+
+def own_priors(teacher: Teacher, indices: list[int]) -> list[np.ndarray]:
+    """``T_new_old`` of each input scan from :func:`own_poses` (the inference priors)."""
+    poses = own_poses(teacher, indices)
+    T_new_world = geometry.inv(poses[-1])
+    return [T_new_world @ P for P in poses[:-1]] + [np.eye(4)]
 
 
 def adapt_sample(dataset: Dataset, teacher: Teacher, k: int, num_frames: int, max_points: int | None,
                  noise: PriorNoise | None = None, rng: np.random.Generator | None = None) -> AdaptSample:
     """The sample whose newest scan is ``k`` (``k`` must not be the teacher's first frame).
 
-    With ``rng`` the points are sampled at random and, with ``noise``, the constant-velocity
-    guess gets an extra error (``noise`` sizes times ``u ** scale_exponent``); without,
-    the points are spread evenly as at inference.
+    With ``rng`` the points are sampled at random and, with ``noise``, the priors get the
+    training errors of ``noisy_priors`` on top of the own poses (a full-size error on the
+    constant-velocity guess, small ones on the older steps: the drift of a less accurate
+    odometry); without, the points are spread evenly and the priors are those of inference.
     """
     indices = window(teacher.frames, k, num_frames)
-    priors = own_priors(teacher, indices)
     if noise is not None and rng is not None:
-        size = rng.uniform() ** noise.scale_exponent if noise.scale_exponent > 0 else 1.0
-        E = prior_perturbation(noise, size, rng)
-        priors = [E @ T for T in priors[:-1]] + [priors[-1]]
+        priors = noisy_priors(own_poses(teacher, indices), noise, rng)
+    else:
+        priors = own_priors(teacher, indices)
     scans = [dataset[i] for i in indices]
     sample = frames_to_sample(scans, priors, max_points, rng)
     pair = teacher.pairs[k]

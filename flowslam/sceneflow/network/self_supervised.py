@@ -149,13 +149,18 @@ def semantic_consistency_loss(flow: Tensor, dynamic_logit: Tensor, ego_flow: Ten
 
 
 def distillation_loss(residual: Tensor, dynamic_logit: Tensor, teacher_residual: Tensor, teacher_dynamic: Tensor,
-                      mask: Tensor | None = None, bce_weight: float = 0.2) -> Tensor:
+                      mask: Tensor | None = None, bce_weight: float = 0.2, max_pos_weight: float = 10.0) -> Tensor:
     """The network against the teacher (the refined ``ssf`` pipeline): MambaFlow's
     scene-adaptive loss on the residual flow plus ``bce_weight`` x BCE of the dynamic
     logit against the teacher's dynamic labels, over ``mask`` (e.g. the points inside
-    the network's grid)."""
+    the network's grid). The BCE's positive (dynamic) terms weigh ``negatives /
+    positives`` of the sample, at most ``max_pos_weight`` (1: plain BCE): on real scans
+    well under 1 % of the points move, and a plain BCE teaches the head to call nothing
+    dynamic."""
     if mask is not None:
         residual, teacher_residual = residual[mask], teacher_residual[mask]
         dynamic_logit, teacher_dynamic = dynamic_logit[mask], teacher_dynamic[mask]
     flow_term = scene_adaptive_loss(residual, teacher_residual)
-    return flow_term + bce_weight * dynamic_bce(dynamic_logit, teacher_dynamic)
+    positives = float(teacher_dynamic.sum())
+    pos_weight = min(max(1.0, (len(teacher_dynamic) - positives) / max(positives, 1.0)), max_pos_weight)
+    return flow_term + bce_weight * dynamic_bce(dynamic_logit, teacher_dynamic, pos_weight=pos_weight)
