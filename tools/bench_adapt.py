@@ -12,8 +12,13 @@ process:
   seed; adapt on the former (their labels unused); network-only and refined ``flow-eval``
   metrics (EPE3D, Dynamic IoU) on the held-out seed.
 - ``speed``: wall time of ``adapt`` on a 100-frame 64-beam simulated sequence.
+- ``gain``: what limits the network alone: on the held-out ``sim`` seed, the network is
+  fed GT-compensated scans whose newest prior is off by a known translation (0-40 cm,
+  random direction); the mean static-point flow error left shows how much of a prior
+  error the network corrects (shipped weights and ``--weights``; a diagnostic that reads
+  GT, never part of the system).
 
-    python tools/bench_adapt.py kitti|sim|speed [--out runs/bench_adapt] [--weights W] [adapt.* overrides]
+    python tools/bench_adapt.py kitti|sim|speed|gain [--out runs/bench_adapt] [--weights W] [--set KEY=VALUE]
 
 ``--set adapt.lr=2e-4`` (repeatable) overrides the run config. Writes
 ``OUT/<experiment>.json``. The machine's load average is printed: timings are upper
@@ -145,9 +150,49 @@ def speed(out: Path, overrides: dict, frames: int, sensor: str) -> dict:
     return {k: result[k] for k in ("best_epoch", "minutes", "wall_s", "history")}
 
 
+def gain(out: Path, weights: Path | None, test_seed: int, frames: int, sensor: str) -> dict:
+    import torch
+
+    from flowslam import geometry
+    from flowslam.datasets import open_dataset
+    from flowslam.sceneflow.network.samples import frames_to_sample
+    from flowslam.sceneflow.network.weights import build_model, load_weights, shipped_weights
+
+    dataset = open_dataset(out / "sim" / f"dt-{sensor}-{frames}-{test_seed}")
+    gt = np.asarray(dataset.gt_poses)
+    record = {}
+    for name, w in (("shipped", shipped_weights()), ("given", weights)):
+        if w is None:
+            continue
+        model = build_model(load_weights(w, require_hash=False))
+        model.fold_batchnorm()
+        rng = np.random.default_rng(0)
+        rows = {}
+        for err in (0.0, 0.05, 0.1, 0.2, 0.4):
+            left, mean_left = [], []
+            for k in range(5, len(dataset), 4):
+                indices = list(range(k - 4, k + 1))
+                phi = rng.uniform(0, 2 * np.pi)
+                E = geometry.from_euler("xyz", [0, 0, 0], t=[err * np.cos(phi), err * np.sin(phi), 0])
+                T_new_world = geometry.inv(gt[k])
+                priors = [E @ T_new_world @ gt[i] for i in indices[:-1]] + [np.eye(4)]
+                scans = [dataset[i] for i in indices]
+                sample = frames_to_sample(scans, priors, 16384)
+                with torch.inference_mode():
+                    res = model({"points": [[torch.from_numpy(p) for p in sample.points]]})["flow"].float().numpy()
+                flow = sample.points[-2] - sample.source_points + res
+                static = ~scans[-2].gt_dynamic[sample.source_index]
+                d = (flow - scans[-2].gt_flow[sample.source_index])[static]
+                left.append(np.linalg.norm(d, axis=1).mean())
+                mean_left.append(np.linalg.norm(d.mean(axis=0)))
+            rows[f"{err:.2f}"] = {"static_epe_m": float(np.mean(left)), "mean_static_error_m": float(np.mean(mean_left))}
+        record[name] = rows
+    return record
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("experiment", choices=["kitti", "sim", "speed"])
+    ap.add_argument("experiment", choices=["kitti", "sim", "speed", "gain"])
     ap.add_argument("--out", type=Path, default=Path("runs/bench_adapt"))
     ap.add_argument("--weights", type=Path, help="Evaluate these adapted weights instead of adapting.")
     ap.add_argument("--set", action="append", default=[], help="KEY=VALUE run-config override (YAML value).")
@@ -163,6 +208,8 @@ def main() -> None:
         record = kitti(args.out, overrides, args.weights)
     elif args.experiment == "sim":
         record = sim(args.out, overrides, args.weights, args.train_seeds, args.test_seed, args.frames, args.sensor)
+    elif args.experiment == "gain":
+        record = gain(args.out, args.weights, args.test_seed, args.frames, args.sensor)
     else:
         record = speed(args.out, overrides, 100 if args.frames == 30 else args.frames, args.sensor)
     record["overrides"] = overrides
