@@ -8,12 +8,16 @@
    system's own poses, plus augmentation) and minimises
    ``distill + data + L_mot + L_SC + L_CD`` (weights ``adapt.loss``; terms in
    ``flowslam.sceneflow.network.self_supervised``).
-4. After every epoch the held-out tail's pairs are scored in pipeline conditions (the
-   network-only ``ssf`` run over the tail with its own poses, ``report.score_weights``:
-   teacher EPE, data term, dynamic IoU against the teacher; no GT); the best epoch by
-   teacher EPE is kept and the run stops after ``patience`` epochs without improvement.
-   Epoch "0" is the starting weights: if no epoch beats them, the written weights are
-   the starting ones.
+4. After every epoch the held-out tail's pairs are scored without labels, two ways:
+   ``samples_*``, the network's EPE against the teacher on fixed held-out samples
+   (teacher poses with a seeded draw of the training prior errors), and ``pipeline_*``,
+   the network-only ``ssf`` run over the tail with its own poses
+   (``report.score_weights``: teacher EPE, data term, dynamic IoU against the teacher).
+   The best epoch by ``SELECT_BY`` (the samples' EPE: the pipeline score jumps from
+   epoch to epoch with the run's compounding pose errors, and predicted a held-out
+   seed's error worse in our measurements) is kept, and the run stops after ``patience``
+   epochs without improvement. Epoch "0" is the starting weights: if no epoch beats
+   them, the written weights are the starting ones.
 5. The best weights are written with their SHA-256 sidecar; ``report.py`` compares them
    with the starting weights on the tails in pipeline conditions.
 
@@ -38,6 +42,10 @@ from flowslam.config import PipelineConfig
 from flowslam.errors import InputError
 from flowslam.sceneflow.adapt.samples import AdaptSample, adapt_sample
 from flowslam.sceneflow.adapt.teacher import Teacher, cache_key, load_teacher, run_teacher
+
+
+SELECT_BY = "samples_teacher_epe_m"
+"""The held-out score that picks the best epoch (``sample_scores``)."""
 
 
 @dataclass
@@ -156,7 +164,35 @@ def _forward(model, samples: list[AdaptSample], device: torch.device) -> tuple[d
 # -- held-out scores --------------------------------------------------------------------------
 
 
-def holdout_score(sequences: list[Sequence], config: PipelineConfig, weights: Path, num_frames: int) -> dict:
+def holdout_samples(sequences: list[Sequence], config: PipelineConfig, num_frames: int,
+                    max_points: int) -> list[AdaptSample]:
+    """The held-out pairs as fixed samples: the teacher's poses with prior errors drawn
+    once from ``adapt.prior_noise`` (a seeded draw per pair, the same every epoch), the
+    errors a network-only run's own poses have."""
+    a = config.adapt
+    return [adapt_sample(seq.dataset, seq.teacher, k, num_frames, max_points, a.prior_noise,
+                         np.random.default_rng([a.seed, 7919, k]))
+            for seq in sequences for k in seq.holdout_pairs]
+
+
+@torch.no_grad()
+def sample_scores(model, samples: list[AdaptSample], device: torch.device) -> dict:
+    """``teacher_epe_m``: the mean EPE of ``model``'s flow against the teacher's over the
+    held-out samples (m); ``static_teacher_epe_m``: the same over the teacher's static
+    points. No labels. It selects the best epoch: smooth from epoch to epoch, where a
+    network-only run's compounding pose errors make its score jump."""
+    model.eval()
+    epe, static = [], []
+    for s in samples:
+        out, _ = _forward(model, [s], device)
+        flow = s.sample.points[-2] - s.sample.source_points + out["flow"].float().cpu().numpy()
+        error = np.linalg.norm(flow - s.teacher_flow, axis=1)
+        epe.append(error.mean())
+        static.append(error[s.segments == 0].mean() if (s.segments == 0).any() else np.nan)
+    return {"teacher_epe_m": float(np.mean(epe)), "static_teacher_epe_m": float(np.nanmean(static))} if samples else {}
+
+
+def pipeline_scores(sequences: list[Sequence], config: PipelineConfig, weights: Path, num_frames: int) -> dict:
     """Label-free scores of ``weights`` on the held-out pairs in pipeline conditions
     (``report.score_weights`` without GT), averaged over the sequences."""
     from flowslam.sceneflow.adapt.report import score_weights
@@ -219,10 +255,12 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
         items = [(d, k) for d, seq in enumerate(sequences) for k in seq.train_pairs]
         model_config = payload["model_config"]
         scratch = out_dir / "epoch_weights.pt"
+        held = holdout_samples(sequences, config, num_frames, max_points)
 
         def score() -> dict:
             save_weights(scratch, model_config, model.state_dict())
-            return holdout_score(sequences, config, scratch, num_frames)
+            return {**{f"samples_{k}": v for k, v in sample_scores(model, held, device).items()},
+                    **{f"pipeline_{k}": v for k, v in pipeline_scores(sequences, config, scratch, num_frames).items()}}
 
         torch.manual_seed(a.seed)
         optimizer = torch.optim.AdamW(model.parameters(), lr=a.lr, weight_decay=a.weight_decay)
@@ -240,9 +278,9 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
             history, best, best_state = ckpt["history"], ckpt["best"], ckpt["best_state"]
             best_epoch, start = ckpt["best_epoch"], ckpt["epoch"] + 1
         else:
-            start_scores = holdout_score(sequences, config, init_path, num_frames)
+            start_scores = score()
             history = [{"epoch": 0, "minutes": (time.monotonic() - t0) / 60, **_prefixed(start_scores)}]
-            best = start_scores.get("teacher_epe_m", math.inf)
+            best = start_scores.get(SELECT_BY, math.inf)
             best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
             best_epoch, start = 0, 1
         for epoch in range(start, a.epochs + 1):
@@ -271,8 +309,8 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
             record = {"epoch": epoch, "minutes": (time.monotonic() - t0) / 60,
                       **{f"train_{k}": v for k, v in sums.items()}, **_prefixed(scores)}
             history.append(record)
-            if scores.get("teacher_epe_m", math.inf) < best:
-                best, best_epoch = scores["teacher_epe_m"], epoch
+            if scores.get(SELECT_BY, math.inf) < best:
+                best, best_epoch = scores[SELECT_BY], epoch
                 best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
             _save(last, {"model": model.state_dict(), "optimizer": optimizer.state_dict(),
                          "scheduler": scheduler.state_dict(), "epoch": epoch, "history": history, "best": best,
@@ -288,7 +326,7 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
     for stale in (scratch, scratch.with_name(scratch.name + ".sha256")):
         stale.unlink(missing_ok=True)
     meta = {"adapted_from": str(init_path), "adapted_from_sha256": init_hash, "best_epoch": best_epoch,
-            "holdout_teacher_epe_m": best, "sequences": [str(s.path) for s in sequences],
+            f"holdout_{SELECT_BY}": best, "sequences": [str(s.path) for s in sequences],
             "train_pairs": {str(s.path): s.train_pairs for s in sequences},
             "holdout_frames": {str(s.path): s.holdout_frames for s in sequences},
             "adapt_config": json.loads(a.model_dump_json())}

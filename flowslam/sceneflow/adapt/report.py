@@ -6,7 +6,7 @@ refinement) through the same frame loop as ``flowslam run`` (``run_pipeline``, o
 backend) from a few scans before the held-out tail (``Sequence.scoring_frames``), so
 that the held-out scans get the history and the own poses of a continuous run; only
 the held-out pairs (both scans in the tail, which training never saw) are scored.
-``adapt`` scores every epoch this way (without GT) to pick the best one. Measured per
+``adapt`` logs this score (without GT) for every epoch. Measured per
 sequence:
 
 - without labels: ``data_term_m``, the mean distance of each warped point of scan
