@@ -638,8 +638,8 @@ def adapt_command(
             "dataset.max_frames": max_frames, "adapt.out_dir": out_dir and str(out_dir), "adapt.epochs": epochs,
             "adapt.holdout_fraction": holdout, "adapt.max_minutes": max_minutes})
         result = adapt(sequences, cfg, weights_out, resume=resume, progress=not no_progress)
-        table = Table(title=f"network-only ssf on the held-out frames (best epoch {result['best_epoch']}, "
-                            f"{result['minutes']:.1f} min)")
+        table = Table(title=f"network-only ssf on the held-out frames (weights of epoch {result['written_epoch']}, "
+                            f"best held-out score at epoch {result['best_epoch']}; {result['minutes']:.1f} min)")
         for column in ("sequence", "measure", "starting weights", "adapted"):
             table.add_column(column, justify="left" if column in ("sequence", "measure") else "right")
         for seq, both in result["report"].items():

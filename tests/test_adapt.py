@@ -139,7 +139,7 @@ def test_weights_are_hashed_and_record_their_origin(runs):
     assert (runs["root"] / "cut.pt.sha256").read_text().split()[0] == sha256_of(path) == runs["cut"]["sha256"]
     meta = load_weights(path)["meta"]
     assert meta["adapted_from_sha256"] == sha256_of(meta["adapted_from"])
-    assert meta["best_epoch"] == runs["cut"]["best_epoch"]
+    assert meta["best_epoch"] == runs["cut"]["best_epoch"] and meta["written_epoch"] == runs["cut"]["written_epoch"]
     report = json.loads((runs["root"] / "cut" / "report.json").read_text())
     assert report["sha256"] == runs["cut"]["sha256"]
 
@@ -151,12 +151,13 @@ def test_report_compares_both_weights_on_the_tail(runs):
         assert 0 <= s["data_term_m"] <= 2.0 and np.isfinite(s["teacher_epe_m"])
         assert 0 <= s["rpe1_trans_m"] < 0.5  # simulated data has GT poses: the report uses them
         assert np.isfinite(s["gt_flow"]["EPE3D"])
-    # The best epoch is the one with the lowest held-out EPE against the teacher on the
-    # fixed held-out samples (epoch 0: the start); the pipeline scores are logged beside.
+    # The best epoch has the lowest held-out EPE against the teacher on the fixed held-out
+    # samples (epoch 0: the start); the written one is the latest within 1 % of it.
     history = runs["cut"]["history"]
-    assert all(np.isfinite(h["holdout_pipeline_teacher_epe_m"]) for h in history)
-    best = min(history, key=lambda h: (h["holdout_samples_teacher_epe_m"], h["epoch"]))
-    assert runs["cut"]["best_epoch"] == best["epoch"]
+    score = {h["epoch"]: h["holdout_samples_teacher_epe_m"] for h in history}
+    best = min(score, key=lambda e: (score[e], e))
+    assert runs["cut"]["best_epoch"] == best
+    assert runs["cut"]["written_epoch"] == max(e for e in score if score[e] <= score[best] * 1.01)
 
 
 def test_run_uses_the_adapted_weights(runs, sim_seq, tmp_path):

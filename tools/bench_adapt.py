@@ -89,7 +89,7 @@ def kitti(out: Path, overrides: dict, weights: Path | None) -> dict:
         adapted = out / "kitti.pt"
         cfg = _config(overrides, **{"adapt.holdout_fraction": 0.5, "adapt.out_dir": str(out / "kitti")})
         result = _adapt([KITTI], cfg, adapted)
-        record["adapt"] = {k: result[k] for k in ("best_epoch", "minutes", "wall_s", "history", "split")}
+        record["adapt"] = {k: result[k] for k in ("best_epoch", "written_epoch", "minutes", "wall_s", "history", "split")}
     tail = list(range(8, 16))
     for name, w in (("shipped", shipped_weights()), ("adapted", adapted)):
         net = _run(KITTI, network_only(_config(overrides), w))
@@ -124,7 +124,7 @@ def sim(out: Path, overrides: dict, weights: Path | None, train_seeds: list[int]
     if adapted is None:
         adapted = out / "sim.pt"
         result = _adapt(train, _config(overrides, **{"adapt.out_dir": str(out / "sim-adapt")}), adapted)
-        record["adapt"] = {k: result[k] for k in ("best_epoch", "minutes", "wall_s", "history", "report")}
+        record["adapt"] = {k: result[k] for k in ("best_epoch", "written_epoch", "minutes", "wall_s", "history", "report")}
     for name, w in (("shipped", shipped_weights()), ("adapted", adapted)):
         metrics = {}
         for mode, cfg in (("network_only", network_only(_config(overrides), w)),
@@ -147,7 +147,7 @@ def speed(out: Path, overrides: dict, frames: int, sensor: str) -> dict:
     for stale in (out / "speed-adapt").glob("checkpoint_last.pt"):
         stale.unlink()
     result = _adapt([path], cfg, out / "speed.pt")
-    return {k: result[k] for k in ("best_epoch", "minutes", "wall_s", "history")}
+    return {k: result[k] for k in ("best_epoch", "written_epoch", "minutes", "wall_s", "history")}
 
 
 def gain(out: Path, weights: Path | None, test_seed: int, frames: int, sensor: str) -> dict:
@@ -216,7 +216,7 @@ def main() -> None:
     (args.out / f"{args.experiment}.json").write_text(json.dumps(record, indent=2, default=str))
     summary = {k: v for k, v in record.items() if k not in ("adapt",)}
     if "adapt" in record:
-        summary["adapt"] = {k: v for k, v in record["adapt"].items() if k in ("best_epoch", "minutes", "wall_s")}
+        summary["adapt"] = {k: v for k, v in record["adapt"].items() if k in ("best_epoch", "written_epoch", "minutes", "wall_s")}
         summary["history"] = [{k: round(v, 4) if isinstance(v, float) else v for k, v in h.items()
                                if k.startswith("holdout") or k == "epoch"} for h in record["adapt"]["history"]]
     print(json.dumps(summary, indent=1, default=str))

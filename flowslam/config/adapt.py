@@ -47,7 +47,11 @@ class AdaptConfig(StrictModel):
     epochs: int = Field(8, ge=1)
     """Passes over the training pairs (OneCycle schedule length)."""
     patience: int = Field(4, ge=1)
-    """Stop when the held-out teacher EPE has not improved for this many epochs."""
+    """Stop when the held-out score has not improved for this many epochs."""
+    select_tolerance: float = Field(0.01, ge=0)
+    """The weights written are those of the latest epoch whose held-out score is within
+    this fraction of the best one: a tail of a few pairs cannot tell such epochs apart,
+    and the later one has had more of the schedule."""
     lr: float = Field(2e-4, gt=0)
     """Peak learning rate (OneCycle)."""
     weight_decay: float = Field(1e-4, ge=0)
