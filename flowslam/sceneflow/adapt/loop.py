@@ -277,9 +277,9 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
             bar.stage(f"epoch {epoch}/{a.epochs}", steps_per_epoch)
             sums: dict[str, float] = {}
             for b in range(steps_per_epoch):
-                chosen = [items[i] for i in order[b * a.batch_size:(b + 1) * a.batch_size]]
+                batch = [items[i] for i in order[b * a.batch_size:(b + 1) * a.batch_size]]
                 samples = [adapt_sample(sequences[d].dataset, sequences[d].teacher, k, num_frames, max_points,
-                                        a.prior_noise, rng) for d, k in chosen]
+                                        a.prior_noise, rng) for d, k in batch]
                 out, rows = _forward(model, samples, device)
                 losses = [pair_loss(out, s, config, r) for s, r in zip(samples, rows)]
                 loss = sum(x for x, _ in losses) / len(losses)
