@@ -108,7 +108,7 @@ class NetworkStage:
         import torch
 
         from flowslam.sceneflow.network.model import default_cpu_threads
-        from flowslam.sceneflow.network.weights import build_model, load_weights, sha256_of, shipped_weights
+        from flowslam.sceneflow.network.weights import build_model, load_weights, shipped_weights
 
         self.options = c = config.network
         threads = c.num_threads or (default_cpu_threads() if c.device == "cpu" else None)
@@ -116,7 +116,7 @@ class NetworkStage:
             torch.set_num_threads(threads)
         path = c.weights or shipped_weights()
         payload = load_weights(path, require_hash=c.weights is None)
-        self.weights_info = {"path": str(path), "sha256": sha256_of(path)}
+        self.weights_info = {"path": str(path), "sha256": payload["sha256"]}
         """Which weights run (recorded in ``run.json``)."""
         self.device = torch.device(c.device)
         self.model = build_model(payload).to(self.device)

@@ -17,8 +17,8 @@
    (A network-only run over the tail was tried as the per-epoch score: it jumps from
    epoch to epoch with the run's compounding pose errors and picked epochs that were
    worse on a held-out seed; it is the final report's measure instead.)
-5. The best weights are written with their SHA-256 sidecar; ``report.py`` compares them
-   with the starting weights on the tails in pipeline conditions.
+5. The chosen epoch's weights are written with their SHA-256 sidecar; ``report.py``
+   compares them with the starting weights on the tails in pipeline conditions.
 
 Checkpoints (``checkpoint_last.pt``, every epoch) make a run resumable; CUDA is used
 when present (``adapt.device``).
@@ -220,12 +220,12 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
     ``.sha256``). Returns the history, the best and the written epoch, the split, the
     hash and the held-out report (``report.compare_on_holdout``)."""
     from flowslam.sceneflow.adapt.report import compare_on_holdout
-    from flowslam.sceneflow.network.weights import build_model, load_weights, save_weights, sha256_of, shipped_weights
+    from flowslam.sceneflow.network.weights import build_model, load_weights, save_weights, shipped_weights
 
     a = config.adapt
     init_path = Path(config.ssf.network.weights or shipped_weights())
     payload = load_weights(init_path, require_hash=config.ssf.network.weights is None)
-    init_hash = sha256_of(init_path)
+    init_hash = payload["sha256"]
     config = config.model_copy(deep=True)
     config.ssf.network.weights = init_path
     out_dir = Path(a.out_dir)

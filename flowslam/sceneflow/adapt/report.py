@@ -6,8 +6,7 @@ refinement) through the same frame loop as ``flowslam run`` (``run_pipeline``, o
 backend) from a few scans before the held-out tail (``Sequence.scoring_frames``), so
 that the held-out scans get the history and the own poses of a continuous run; only
 the held-out pairs (both scans in the tail, which training never saw) are scored.
-``adapt`` logs this score (without GT) for every epoch. Measured per
-sequence:
+Measured per sequence:
 
 - without labels: ``data_term_m``, the mean distance of each warped point of scan
   k-1 (``p + flow``) to its nearest point of scan k (capped at ``adapt.truncate_m``);
@@ -45,14 +44,14 @@ class _SelfSupervisedScores:
         self.teacher_dyn: list[np.ndarray] = []
 
     def on_output(self, frame: Frame, out: FrontendOutput) -> None:
-        from scipy.spatial import cKDTree
+        import torch
+
+        from flowslam.sceneflow.network.self_supervised import chamfer_to_scan
 
         prev, self._prev = self._prev, frame
         if prev is None or out.flow is None or frame.index not in self.scored:
             return
-        warped = out.points + out.flow
-        distance, _ = cKDTree(frame.points).query(warped, k=1)
-        self.data.append(float(np.minimum(distance, self.truncate_m).mean()))
+        self.data.append(float(chamfer_to_scan(torch.from_numpy(out.points + out.flow), frame.points, self.truncate_m)))
         pair = self.teacher.pairs.get(frame.index)
         if pair is not None and len(pair.flow) == len(out.flow):
             self.epe.append(np.linalg.norm(out.flow - pair.flow, axis=1))
@@ -80,11 +79,10 @@ def network_only(config: PipelineConfig, weights: Path) -> PipelineConfig:
     return config
 
 
-def score_weights(sequence, config: PipelineConfig, weights: Path, num_frames: int, with_gt: bool = True) -> dict:
+def score_weights(sequence, config: PipelineConfig, weights: Path, num_frames: int) -> dict:
     """The module doc's measures of network-only ``ssf`` with ``weights`` on the held-out
     pairs of ``sequence`` (a ``loop.Sequence`` with its teacher); ``num_frames``: the
-    network's input scans (the run starts that many scans before the tail). The GT
-    measures only ``with_gt`` (and where the reader has GT)."""
+    network's input scans (the run starts that many scans before the tail)."""
     from flowslam.evaluation.rpe import rpe
     from flowslam.flow_eval import FlowEvaluation
     from flowslam.pipeline import run_pipeline
@@ -93,7 +91,7 @@ def score_weights(sequence, config: PipelineConfig, weights: Path, num_frames: i
     cfg = network_only(config, weights)
     scored = set(sequence.holdout_pairs)
     scores = _SelfSupervisedScores(sequence.teacher, config.adapt.truncate_m, scored)
-    gt_poses = sequence.dataset.gt_poses if with_gt else None
+    gt_poses = sequence.dataset.gt_poses
     flow_sink = FlowEvaluation(np.asarray(gt_poses), scored) if gt_poses is not None else None
 
     def on_output(frame: Frame, out: FrontendOutput) -> None:

@@ -3,8 +3,7 @@ refinement + objects), run once over each sequence and cached on disk.
 
 For every pair (k-1, k) it keeps what the refined pipeline found for the points of
 scan k-1: the flow (m, Argoverse 2 convention, sensor frame k), the static mask, the
-moving-object instance ids, whether the static refinement was accepted, and the
-odometry step ``T_prev_curr``. The chained steps are the system's *own* pose estimates
+moving-object instance ids and the odometry step ``T_prev_curr``. The chained steps are the system's *own* pose estimates
 (``T_world_sensor``, world = the first scan): the adaptation compensates its inputs
 with them exactly as inference does. No ground truth is read.
 
@@ -43,8 +42,6 @@ class TeacherPair:
     """(N,) int32: moving-object instance (-1: none)."""
     T_prev_curr: np.ndarray
     """(4,4) the odometry step (scan k into scan k-1's frame)."""
-    accepted: bool
-    """The static refinement was accepted (else the flow is the network's)."""
 
     @property
     def segments(self) -> np.ndarray:
@@ -80,13 +77,12 @@ def cache_key(path: Path, frames: list[int], config: PipelineConfig, weights_has
 
 def _save_pair(folder: Path, pair: TeacherPair) -> None:
     np.savez(folder / f"pair_{pair.index:06d}.npz", flow=pair.flow, static=pair.static, instance=pair.instance,
-             T_prev_curr=pair.T_prev_curr, accepted=np.array(pair.accepted))
+             T_prev_curr=pair.T_prev_curr)
 
 
 def _load_pair(file: Path) -> TeacherPair:
     with np.load(file) as z:
-        return TeacherPair(int(file.stem.split("_")[1]), z["flow"], z["static"], z["instance"], z["T_prev_curr"],
-                           bool(z["accepted"]))
+        return TeacherPair(int(file.stem.split("_")[1]), z["flow"], z["static"], z["instance"], z["T_prev_curr"])
 
 
 def load_teacher(folder: Path) -> Teacher | None:
@@ -121,8 +117,7 @@ def run_teacher(dataset: Dataset, frames: list[int], config: PipelineConfig, fol
             instance = out.instance_ids if out.instance_ids is not None else np.full(n, -1)
             static = out.static_mask if out.static_mask is not None else np.ones(n, bool)
             pair = TeacherPair(index, np.asarray(out.flow, np.float32), np.asarray(static, bool),
-                               np.asarray(instance, np.int32), np.asarray(out.T_prev_curr, np.float64),
-                               bool(out.stats.get("refine_accepted", False)))
+                               np.asarray(instance, np.int32), np.asarray(out.T_prev_curr, np.float64))
             _save_pair(folder, pair)
             pairs[index] = pair
             poses[index] = poses[prev] @ pair.T_prev_curr

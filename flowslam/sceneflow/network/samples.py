@@ -95,9 +95,7 @@ def frames_to_sample(
     )
 
 
-def prior_perturbation(noise: PriorNoise, scale: float, rng: np.random.Generator) -> np.ndarray:
-    """A random rigid error (4,4) of ``noise``'s sizes times ``scale``: translation in a disc
-    of radius ``max_translation_m`` (x, y) and +-``max_z_m``, roll/pitch/yaw uniform."""
+def _perturbation(noise: PriorNoise, scale: float, rng: np.random.Generator) -> np.ndarray:
     r = noise.max_translation_m * scale * np.sqrt(rng.uniform())
     phi = rng.uniform(0, 2 * np.pi)
     t = [r * np.cos(phi), r * np.sin(phi), rng.uniform(-1, 1) * noise.max_z_m * scale]
@@ -121,7 +119,7 @@ def noisy_priors(gt_poses: np.ndarray, noise: PriorNoise, rng: np.random.Generat
     T = np.eye(4)
     for t in range(n - 2, -1, -1):
         scale = size * (1.0 if t == n - 2 else noise.older_step_fraction)
-        T = T @ (prior_perturbation(noise, scale, rng) @ steps[t])
+        T = T @ (_perturbation(noise, scale, rng) @ steps[t])
         priors.append(T.copy())
     return priors[::-1]
 

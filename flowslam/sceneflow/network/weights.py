@@ -57,7 +57,8 @@ def save_weights(path: str | Path, model_config: dict, state_dict: dict, meta: d
 
 
 def load_weights(path: str | Path, *, require_hash: bool = True) -> dict:
-    """Verify the hash (sidecar ``.sha256``) and load with ``weights_only=True``.
+    """Verify the hash (sidecar ``.sha256``) and load with ``weights_only=True``. The
+    file's SHA-256 is returned in ``payload["sha256"]``.
 
     Raises ``InputError`` for a missing file, a missing sidecar (when
     ``require_hash``), a hash mismatch, or a file that is not flowslam weights.
@@ -68,9 +69,9 @@ def load_weights(path: str | Path, *, require_hash: bool = True) -> dict:
     if path.stat().st_size == 0:
         raise InputError(path, "weights file is empty")
     sidecar = _sidecar(path)
+    actual = sha256_of(path)
     if sidecar.is_file():
         expected = sidecar.read_text().split()[0] if sidecar.read_text().split() else ""
-        actual = sha256_of(path)
         if actual != expected:
             raise InputError(path, f"SHA-256 {actual[:12]}... differs from the recorded {expected[:12]}... "
                                    f"({sidecar.name}): refusing a modified or damaged weights file")
@@ -83,6 +84,7 @@ def load_weights(path: str | Path, *, require_hash: bool = True) -> dict:
         raise InputError(path, f"cannot load weights ({e.__class__.__name__}: {first_line})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise InputError(path, f"not a {FORMAT} weights file")
+    payload["sha256"] = actual
     return payload
 
 
