@@ -43,7 +43,7 @@ class _Flowslam(typer.Typer):
         except click_errors.ClickException as error:
             error.show()
             sys.exit(error.exit_code)
-        except click_errors.Abort:
+        except (getattr(click_errors, "Abort", ()) or typer.Abort):  # typer 0.29 moved it out of its click copy
             print("Aborted!", file=sys.stderr)
             sys.exit(1)
         sys.exit(code if isinstance(code, int) else 0)

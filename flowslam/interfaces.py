@@ -51,6 +51,8 @@ class Frontend(Protocol):
     name: str
     # Optional: ``config_sections`` (tuple of str), the config sections the frontend
     # reads; ``flowslam run`` refuses a command-line option of another section.
+    # Optional: ``upcoming(frame)``, told the next scan before ``process`` gets the current
+    # one (the run loop reads one scan ahead), so work on it may start early.
 
     def process(self, frame: Frame) -> FrontendOutput:
         """Consume the next scan in order; return the relative motion to the previous one."""

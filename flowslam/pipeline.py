@@ -26,18 +26,36 @@ def drive(
     """Feed ``frames`` (dataset indices, default all) of ``dataset`` to ``slam`` in order;
     ``on_frame(k, seconds)`` after each (progress bars; seconds include the read).
     Exceptions, including ``KeyboardInterrupt``, end the loop and are stored in the
-    result instead of propagating."""
+    result instead of propagating. A frontend with an ``upcoming(frame)`` method is told
+    the next scan before it processes the current one (read one step ahead: its work on
+    the next scan may start early, e.g. ``ssf``'s network)."""
     frames = range(len(dataset)) if frames is None else frames
+    upcoming = getattr(slam.frontend, "upcoming", None)
+    ahead: Frame | None = None  # frames[k], read one step early for the frontend's ``upcoming``
     for k, index in enumerate(frames):
         start = time.perf_counter()
         try:
-            slam.process(dataset[index], started=start)
+            frame, ahead = (ahead if ahead is not None else dataset[index]), None
+            if upcoming is not None and k + 1 < len(frames):
+                ahead = _read_ahead(dataset, frames[k + 1])
+                if ahead is not None:
+                    upcoming(ahead)
+            slam.process(frame, started=start)
         except (Exception, KeyboardInterrupt) as error:  # keep what is done, report after writing
             slam.stopped(error, index)
             break
         if on_frame is not None:
             on_frame(k, time.perf_counter() - start)
     return slam.result()
+
+
+def _read_ahead(dataset: Dataset, index: int) -> Frame | None:
+    """Scan ``index`` read early, or None when reading it fails: the loop then reads it again
+    in its turn, and the error stops the run there (the scans before it are processed)."""
+    try:
+        return dataset[index]
+    except Exception:
+        return None
 
 
 def run_pipeline(

@@ -34,6 +34,15 @@ Per scan ``k`` (k >= 1) a chain of stages runs on the pair (k-1, k)
    instance id. With objects off, the static points get the rigid flow of the
    measurement instead (``static_flow``).
 
+Two threads (``ssf.lookahead``, on by default): the run loop reads one scan ahead and
+hands it over (``upcoming``); as soon as scan k's pose is measured (after ``recovery``),
+stages 1-3 of pair (k, k+1) start in a background thread, while the objects stage of
+pair (k-1, k), the backend, mapping and loop closing run in the caller's. Those stages
+read only the scans and the frontend's own poses up to k, the same inputs as in one
+thread, so the outputs are the same; ``process`` then takes their result
+(``stats["ahead_wait_ms"]``: how long it waited for it). A caller that never
+calls ``upcoming`` gets the one-thread behaviour.
+
 Per-point outputs (flow, static mask, instance ids) refer to scan ``k-1``, as the
 interface says; ``stats["stage_ms"]`` holds each stage's wall time, ``stats["recovery"]``
 the motion-fault check (counted in run.json's ``fallbacks`` entry).
@@ -78,33 +87,95 @@ class SsfFrontend:
         self._frames: deque[Frame] = deque(maxlen=self.num_frames - 1)
         self._poses: deque[np.ndarray] = deque(maxlen=self.num_frames - 1)  # own T_world_sensor estimates
         self._last_motion = np.eye(4)
+        measuring = [i for i, s in enumerate(self.stages) if getattr(s, "measures", False)]
+        self._ahead_stages = self.stages[:measuring[0]] if measuring else []
+        """The stages that may run ahead on the next pair (``Stage`` doc)."""
+        self._measured_after = measuring[-1] if measuring else len(self.stages) - 1
+        """Index of the stage after which scan k's pose is final."""
+        self._upcoming: Frame | None = None
+        self._ahead: _StagesAhead | None = None
+        self._executor = None
+
+    def upcoming(self, frame: Frame) -> None:
+        """The scan after the one the next :meth:`process` call gets, read ahead by the run
+        loop: with ``ssf.lookahead`` the first stages of its pair run in a background thread
+        as soon as that call has measured its pose (module doc). Optional for callers."""
+        self._upcoming = frame if self.options.lookahead and self._ahead_stages else None
 
     def process(self, frame: Frame) -> FrontendOutput:
         if not self._frames:
-            self._frames.append(frame)
-            self._poses.append(np.eye(4))
+            self._advance(frame, np.eye(4), np.eye(4))
             return FrontendOutput(index=frame.index, T_prev_curr=None)
-        T_world_prev = self._poses[-1]
-        state = PairState(
-            prev=self._frames[-1], frame=frame, history=list(self._frames), history_poses=list(self._poses),
-            T_world_guess=T_world_prev @ self._last_motion,  # constant velocity
-        )
+        state = self._pair_state(frame)
         laps: dict[str, float] = {}
-        for stage in self.stages:
+        first, waited = 0, {}
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None and ahead.serves(state):
             start = time.perf_counter()
-            stage.run(state)
-            laps[stage.name] = 1e3 * (time.perf_counter() - start)
+            state, laps = ahead.result()  # raises what those stages raised
+            waited = {"ahead_wait_ms": 1e3 * (time.perf_counter() - start)}
+            first = len(self._ahead_stages)
+        for i in range(first, len(self.stages)):
+            laps.update(_run_timed(self.stages[i:i + 1], state))
+            if i == self._measured_after:  # the pose of scan k is final
+                self._advance(frame, self._poses[-1] @ state.estimate.T_prev_curr, state.estimate.T_prev_curr)
         est = state.estimate
-        self._last_motion = est.T_prev_curr
-        self._frames.append(frame)
-        self._poses.append(T_world_prev @ est.T_prev_curr)
         dynamic = {} if state.static is None else {"dynamic_points": int((~state.static).sum())}  # None: unsegmented
-        stats = dict(est.stats, **dynamic, **state.stats, stage_ms=laps)
+        stats = dict(est.stats, **dynamic, **state.stats, **waited, stage_ms=laps)
         return FrontendOutput(
             index=frame.index, T_prev_curr=est.T_prev_curr, covariance=est.covariance,
             points=state.prev.points, flow=state.flow, static_mask=state.static,
             instance_ids=state.instance, stats=stats,
         )
+
+    def _pair_state(self, frame: Frame) -> PairState:
+        """The pair (last scan, ``frame``) with the window of past scans and own poses, and
+        the constant-velocity guess of ``frame``'s pose."""
+        return PairState(prev=self._frames[-1], frame=frame, history=list(self._frames),
+                         history_poses=list(self._poses), T_world_guess=self._poses[-1] @ self._last_motion)
+
+    def _advance(self, frame: Frame, T_world_frame: np.ndarray, T_prev_curr: np.ndarray) -> None:
+        """``frame`` joins the window with its pose; the first stages of the upcoming pair start."""
+        self._last_motion = T_prev_curr
+        self._frames.append(frame)
+        self._poses.append(T_world_frame)
+        upcoming, self._upcoming = self._upcoming, None
+        if upcoming is not None and upcoming.index > frame.index:
+            if self._executor is None:
+                from concurrent.futures import ThreadPoolExecutor
+
+                self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ssf-ahead")
+            state = self._pair_state(upcoming)
+            self._ahead = _StagesAhead(state, self._executor.submit(_run_timed, self._ahead_stages, state))
+
+
+def _run_timed(stages: list[Stage], state: PairState) -> dict[str, float]:
+    """Run ``stages`` on ``state`` in order; the wall time of each (ms)."""
+    laps = {}
+    for stage in stages:
+        start = time.perf_counter()
+        stage.run(state)
+        laps[stage.name] = 1e3 * (time.perf_counter() - start)
+    return laps
+
+
+class _StagesAhead:
+    """The first stages of a pair, run in the background (``SsfFrontend._advance``)."""
+
+    def __init__(self, state: PairState, future):
+        self.state, self.future = state, future
+
+    def serves(self, state: PairState) -> bool:
+        """Whether ``state`` has exactly these inputs: the same scan objects and poses."""
+        mine, theirs = self.state, state
+        frames = [*mine.history, mine.frame], [*theirs.history, theirs.frame]
+        poses = [*mine.history_poses, mine.T_world_guess], [*theirs.history_poses, theirs.T_world_guess]
+        return (len(frames[0]) == len(frames[1]) and all(a is b for a, b in zip(*frames))
+                and all(np.array_equal(a, b) for a, b in zip(*poses)))
+
+    def result(self) -> tuple[PairState, dict[str, float]]:
+        """The state those stages filled and their wall times (ms)."""
+        return self.state, self.future.result()
 
 
 def make_frontend(config: PipelineConfig) -> SsfFrontend:

@@ -91,6 +91,11 @@ class PairState:
 
 class Stage(Protocol):
     name: str
+    # Optional: ``measures = True`` on a stage that sets or changes ``state.estimate`` (the
+    # pose of scan k). The stages before the first such stage see only the pair, its window
+    # and the poses before it; those after the last one only refine per-point outputs. So
+    # the first ones of the next pair may run while the last ones of this pair run
+    # (``SsfFrontend``, ``ssf.lookahead``).
 
     def run(self, state: PairState) -> None:
         """Read and fill ``state``."""
@@ -202,6 +207,7 @@ class FlowToPoseStage:
     refinement was accepted, else on the network's static flow."""
 
     name = "flow_to_pose"
+    measures = True
 
     def __init__(self, flow_odometry: FlowOdometryConfig):
         self.flow_to_pose = FlowToPose(flow_odometry)
@@ -236,6 +242,7 @@ class MotionRecoveryStage:
     before/after, the global start's stats; ``summarize_fallbacks`` counts them."""
 
     name = "recovery"
+    measures = True
 
     def __init__(self, config: SsfConfig, flow_to_pose: FlowToPoseStage):
         from flowslam.config import RansacConfig

@@ -11,7 +11,16 @@ run in the same process, one after the other, so that they share the machine's l
 - ``refine``: static refinement, no objects;
 - ``full`` (the default configuration): refinement and objects.
 
-    python tools/bench_ssf_pipeline.py [SEQUENCE] [--runs 3] [--threads N] [--frames 16]
+Stage times come from ``process`` calls one after the other, without the run loop's
+read-ahead, so the network never runs ahead there. Then the **end-to-end** rate of the
+run loop as ``flowslam run -f F -b isam2`` drives it (read + frontend + iSAM2 backend +
+loop closing + mapping + output sinks, no files written), ``--runs`` times each,
+alternating: ``ssf`` with the next pair's network and static refinement in a background
+thread (``ssf.lookahead``, the default), ``ssf`` in one thread, and ``kiss-icp`` (the rate
+the issue compares against). A rate is frames after the first / wall time of the loop;
+the median per-frame time is printed beside it.
+
+    python tools/bench_ssf_pipeline.py [SEQUENCE] [--runs 3] [--threads N] [--frames 16] [--skip-stages]
 
 The machine's load average is printed: on a shared machine the timings are upper bounds.
 Run with ``OMP_WAIT_POLICY=PASSIVE`` on a loaded machine (see ``bench_sceneflow.py``).
@@ -54,6 +63,35 @@ def run_once(frames, options: dict, threads: int | None) -> tuple[list[float], d
     return totals, stages
 
 
+END_TO_END = {
+    "ssf lookahead": ("ssf", {}),
+    "ssf sequential": ("ssf", {"ssf": {"lookahead": False}}),
+    "kiss-icp": ("kiss-icp", {}),
+}
+
+
+def run_end_to_end(sequence: Path, n_frames: int, frontend: str, options: dict, threads: int | None):
+    """(frames/s after the first frame, per-frame seconds) of the run loop on ``sequence``."""
+    from flowslam.config import PipelineConfig
+    from flowslam.datasets import open_dataset
+    from flowslam.pipeline import drive
+    from flowslam.slam import Slam
+
+    if frontend == "ssf":
+        options = {**options, "ssf": {**options.get("ssf", {})}}
+        options["ssf"]["network"] = {**options["ssf"].get("network", {}), "num_threads": threads}
+    config = PipelineConfig(frontend=frontend, backend="isam2", **options)
+    dataset = open_dataset(sequence, config.dataset)
+    slam = Slam(config)
+    laps = []
+    result = drive(slam, dataset, range(min(n_frames, len(dataset))),
+                   on_frame=lambda k, seconds: laps.append((time.perf_counter(), seconds)))
+    if result.error is not None:
+        raise result.error
+    wall = laps[-1][0] - laps[0][0]  # from the end of frame 0 to the end of the last
+    return (len(laps) - 1) / wall, [seconds for _, seconds in laps[1:]]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("sequence", nargs="?", type=Path, default=DATA / "kitti-odometry-00-first16")
@@ -61,6 +99,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None,
                     help="torch threads of the network (default: the frontend's own default)")
     ap.add_argument("--frames", type=int, default=16)
+    ap.add_argument("--skip-stages", action="store_true", help="only the end-to-end rates")
     args = ap.parse_args()
 
     from flowslam.datasets import open_dataset
@@ -70,7 +109,7 @@ def main() -> None:
     n_points = int(np.median([len(f.points) for f in frames]))
     print(f"{args.sequence.name}: {len(frames)} frames, median {n_points} points; threads {args.threads or 'default'}; "
           f"load average {os.getloadavg()[0]:.2f}")
-    for name, options in CONFIGS.items():
+    for name, options in ({} if args.skip_stages else CONFIGS).items():
         totals, stages = [], {}
         for _ in range(args.runs):
             t, s = run_once(frames, options, args.threads)
@@ -81,6 +120,19 @@ def main() -> None:
         parts = ", ".join(f"{k} {statistics.median(v):.0f}" for k, v in stages.items())
         print(f"{name:>13}: {median:6.0f} ms/frame ({1e3 / median:4.1f} Hz) median of {len(totals)}; "
               f"stages (median ms): {parts}")
+    rates: dict[str, list[float]] = {name: [] for name in END_TO_END}
+    laps: dict[str, list[float]] = {name: [] for name in END_TO_END}
+    for _ in range(args.runs):  # alternating, so that the configurations share the load
+        for name, (frontend, options) in END_TO_END.items():
+            rate, seconds = run_end_to_end(args.sequence, args.frames, frontend, options, args.threads)
+            rates[name].append(rate)
+            laps[name] += seconds
+    for name in END_TO_END:
+        rate = statistics.median(rates[name])
+        print(f"{'end to end ' + name:>28}: {rate:5.2f} frames/s (median of {args.runs} runs; per frame "
+              f"median {1e3 * statistics.median(laps[name]):.0f} ms), -b isam2 defaults")
+    ratio = statistics.median(rates["ssf lookahead"]) / statistics.median(rates["kiss-icp"])
+    print(f"ssf (lookahead) / kiss-icp rate: {ratio:.2f}")
     print(f"load average after: {os.getloadavg()[0]:.2f}")
 
 

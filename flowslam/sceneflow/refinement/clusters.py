@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from flowslam.sceneflow.refinement.symmetric3 import smallest_eigenvectors, symmetric_eigenvalues
+
 __all__ = [
     "LocalGround",
     "ScanSurface",
@@ -136,7 +138,7 @@ def grid_voxel_ids(points: np.ndarray, lo: np.ndarray, cell: float, shape: tuple
 def plane_normals(tree, points: np.ndarray, idx: np.ndarray, radius: float, k: int = 20) -> np.ndarray:
     """(len(idx),3) unit normals of ``points[idx]``: smallest principal axis of their (at
     most ``k``) neighbours within ``radius`` (``tree``: a cKDTree over ``points``); a point
-    with < 3 neighbours gets NaN."""
+    with < 3 neighbours gets NaN, so does one without a unique smallest axis (a line)."""
     dist, nb = tree.query(points[idx], k=min(k, len(points)), distance_upper_bound=radius)
     dist, nb = dist.reshape(len(idx), -1), nb.reshape(len(idx), -1)
     valid = np.isfinite(dist)
@@ -144,7 +146,7 @@ def plane_normals(tree, points: np.ndarray, idx: np.ndarray, radius: float, k: i
     n = valid.sum(axis=1).astype(np.float64)
     mean = pts.sum(axis=1) / n[:, None]
     cov = np.einsum("mki,mkj->mij", pts, pts) / n[:, None, None] - np.einsum("mi,mj->mij", mean, mean)
-    normals = np.linalg.eigh(cov)[1][:, :, 0]
+    normals = smallest_eigenvectors(cov, symmetric_eigenvalues(cov)[:, 0])
     normals[n < 3] = np.nan
     return normals
 

@@ -102,22 +102,48 @@ def _best_icp(p: np.ndarray, tgt, surface: ScanSurface, starts: list[np.ndarray]
     return best
 
 
-def _score(src: np.ndarray, T: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig):
-    """(fitness, RMSE) of ``T src`` against the target surface: a point is an inlier when its
-    nearest target point is within ``score_distance_m`` and it lies within ``score_plane_m``
-    of that point's tangent plane; RMSE of the inliers' plane distances (m). Plane, not
-    point, distances: a static surface seen by other rings in scan k is still a surface."""
-    x = transform_points(T, src)
+def _plane_distances(x: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> np.ndarray:
+    """(M,) distance (m) of each point ``x`` (frame k) to the tangent plane of its nearest
+    scan-k point when that is within ``score_distance_m``; inf beyond, NaN without a normal."""
+    plane = np.full(len(x), np.inf)
     dist, j = surface.tree.query(x, distance_upper_bound=c.score_distance_m)
     ok = np.flatnonzero(np.isfinite(dist))
-    if ok.size == 0:
-        return 0.0, float("inf")
-    normals = surface.normals(j[ok], c.normal_radius_m)
-    plane = np.abs(np.einsum("ij,ij->i", x[ok] - surface.points[j[ok]], normals))
-    inlier = plane < c.score_plane_m  # NaN normals compare False
+    if ok.size:
+        normals = surface.normals(j[ok], c.normal_radius_m)
+        plane[ok] = np.abs(np.einsum("ij,ij->i", x[ok] - surface.points[j[ok]], normals))
+    return plane
+
+
+def _fit(plane: np.ndarray, c: ObjectRefinementConfig) -> tuple[float, float]:
+    """(fitness, RMSE) of points with these plane distances: a point is an inlier within
+    ``score_plane_m`` of the plane (NaN and inf compare False); RMSE of the inliers' (m)."""
+    inlier = plane < c.score_plane_m
     if not inlier.any():
         return 0.0, float("inf")
-    return float(inlier.sum()) / len(src), float(np.sqrt(np.mean(plane[inlier] ** 2)))
+    return float(inlier.sum()) / len(plane), float(np.sqrt(np.mean(plane[inlier] ** 2)))
+
+
+def _score(src: np.ndarray, T: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig):
+    """(fitness, RMSE) of ``T src`` against the target surface (:func:`_fit` of
+    :func:`_plane_distances`). Plane, not point, distances: a static surface seen by other
+    rings in scan k is still a surface."""
+    return _fit(_plane_distances(transform_points(T, src), surface, c), c)
+
+
+def _static_scores(source: np.ndarray, objects: list[np.ndarray], T_ego: np.ndarray, surface: ScanSurface,
+                   c: ObjectRefinementConfig) -> list[tuple[float, float]]:
+    """:func:`_score` of every object (index arrays into ``source``) under the ego motion,
+    from one query of all their points (per point the same numbers as one by one)."""
+    if not objects:
+        return []
+    plane = _plane_distances(transform_points(T_ego, source[np.concatenate(objects)]), surface, c)
+    return [_fit(part, c) for part in np.split(plane, np.cumsum([len(o) for o in objects])[:-1])]
+
+
+def _icp_subset(n: int, c: ObjectRefinementConfig) -> np.ndarray:
+    """Indices of the at most ``max_icp_points`` of an object's ``n`` points that its ICP uses
+    (evenly strided, first and last included)."""
+    return np.arange(n) if n <= c.max_icp_points else np.linspace(0, n - 1, c.max_icp_points).round().astype(np.int64)
 
 
 def _principal_axis(points: np.ndarray) -> np.ndarray:
@@ -171,9 +197,11 @@ def refine_objects(
     objects = []
     settled = np.zeros(len(source), dtype=bool)
     instance = np.full(len(source), -1, dtype=np.int64)
-    for idx in _clusters(source, cand, c):
+    clusters = _clusters(source, cand, c)
+    for idx, static_score in zip(clusters, _static_scores(source, clusters, T_ego, surface, c)):
         instance[idx] = len(objects)
-        record = _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface, c)
+        record = _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
+                                static_score, c)
         objects.append(record)
         if "result" in record:
             landing, moving = record.pop("result")
@@ -239,30 +267,32 @@ def _target_box(surface: ScanSurface, guess: np.ndarray, ego: np.ndarray, reach:
 
 
 def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.ndarray, T_ego: np.ndarray,
-                   interval: float, surface: ScanSurface, c: ObjectRefinementConfig) -> dict:
+                   interval: float, surface: ScanSurface, static_score: tuple[float, float],
+                   c: ObjectRefinementConfig) -> dict:
     """Register one object (points ``p``, frame k-1; their flow; its geometric movers ``sub``
-    and seen-through points) to scan k, ``interval`` (s) after. Returns its record; an
-    accepted one also holds ``result``: (landing (M,3) of each point in frame k, moving (M,)
-    bool)."""
+    and seen-through points; its ``static_score``, :func:`_score` under ``T_ego``) to scan k,
+    ``interval`` (s) after. Returns its record; an accepted one also holds ``result``:
+    (landing (M,3) of each point in frame k, moving (M,) bool)."""
+    static_fitness, static_rmse = static_score
+    ego = transform_points(T_ego, p)  # where the points land if they are static
+    record = {"points": int(len(p)), "static_fitness": static_fitness, "static_rmse_m": static_rmse,
+              "accepted": False}
+    if static_fitness >= c.static_fitness_accept:  # static whatever the ICP finds: skip it
+        record.update(accepted=True, speed_mps=0.0, result=(ego, np.zeros(len(p), dtype=bool)))
+        return record
     R = T_ego[:3, :3]
     T0 = np.eye(4)
     T0[:3, :3] = R
     T0[:3, 3] = np.median(p + flow - p @ R.T, axis=0)  # the network's (or carried) displacement
-    ego = transform_points(T_ego, p)  # where the points land if they are static
     mover_starts = _mover_starts(p, sub, seen, T_ego, c)
     reach = max(abs(d) for d in c.hypotheses_m) if mover_starts else 0.0
     box = _target_box(surface, transform_points(T0, p), ego, reach, c)
-    record = {"points": int(len(p)), "target_points": int(len(box)), "accepted": False}
+    record["target_points"] = int(len(box))
     if len(box) < c.min_points:
-        return record
-    static_fitness, static_rmse = _score(p, T_ego, surface, c)
-    record.update(static_fitness=static_fitness, static_rmse_m=static_rmse)
-    if static_fitness >= c.static_fitness_accept:  # static whatever the ICP finds: skip it
-        record.update(accepted=True, speed_mps=0.0, result=(ego, np.zeros(len(p), dtype=bool)))
         return record
     tgt = _cloud(box)
     motions = []  # candidate rigid motions of (parts of) this object besides the ego motion
-    T, fitness, rmse, T_start = _best_icp(p, tgt, surface, [T0] + mover_starts, c)
+    T, fitness, rmse, T_start = _best_icp(p[_icp_subset(len(p), c)], tgt, surface, [T0] + mover_starts, c)
     moved_by = float(np.linalg.norm((T[:3, :3] - R) @ p.mean(axis=0) + T[:3, 3] - T_start[:3, 3]))
     record.update(fitness=fitness, rmse_m=rmse, icp_correction_m=moved_by)
     if fitness >= c.min_fitness and rmse <= c.max_rmse_m and moved_by <= c.max_correction_m:
@@ -271,8 +301,9 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
                 and static_rmse <= c.static_rmse_ratio * rmse + 0.005):
             motions.append(T)  # not explained as well by the ego motion
     if mover_starts:  # the geometric movers alone, from shifted ego landings
-        Tm, fm, rm, _ = _best_icp(p[sub], tgt, surface, mover_starts + [T0], c)
-        joint_on_movers = _score(p[sub], motions[0], surface, c)[0] if motions else 0.0
+        moving_part = p[sub][_icp_subset(int(sub.sum()), c)]
+        Tm, fm, rm, _ = _best_icp(moving_part, tgt, surface, mover_starts + [T0], c)
+        joint_on_movers = _score(moving_part, motions[0], surface, c)[0] if motions else 0.0
         record.update(mover_fitness=fm, mover_rmse_m=rm)
         # only when the object's own ICP does not already explain its movers
         if fm >= c.min_fitness and rm <= c.max_rmse_m and fm > joint_on_movers + c.static_preference:

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from flowslam.config.ssf import FlowRefinementConfig
 from flowslam.geometry import transform_points
+from flowslam.sceneflow.refinement.symmetric3 import smallest_eigenvectors, symmetric_eigenvalues
 
 __all__ = ["RefinedFlow", "refine_static_flow"]
 
@@ -66,27 +67,92 @@ class RefinedFlow:
     scene whose geometry the odometry's degeneracy check judges."""
 
 
-def _downsample(points: np.ndarray, voxel: float, max_range: float):
+def _voxel_centroids(points: np.ndarray, voxel: float, max_range: float, subset: np.ndarray | None = None) -> np.ndarray:
+    """Centroids (M,3) per ``voxel``-sized cube (Open3D's grid) of the points (N,3, sensor
+    frame, m) closer than ``max_range`` to the sensor, of those in ``subset`` ((N,) bool)
+    only when given; one selection copy at most, none when every point is kept."""
     import open3d as o3d
 
     p = np.asarray(points, dtype=np.float64)
-    p = p[np.einsum("ij,ij->i", p, p) < max_range * max_range]
-    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p)).voxel_down_sample(voxel)
+    keep = np.einsum("ij,ij->i", p, p) < max_range * max_range
+    if subset is not None:
+        keep &= subset
+    if not keep.all():
+        p = p[keep]
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(p)))
+    return np.asarray(cloud.voxel_down_sample(voxel).points)
 
 
-def _planar_points(points: np.ndarray, c: FlowRefinementConfig) -> tuple[np.ndarray, np.ndarray]:
-    """The points whose neighbourhood (``normal_radius_m``, at most 20 points) is a plane
-    (surface variation at most ``max_surface_variation``) and their unit normals (N,3).
+def _near_any(points: np.ndarray, others: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) bool: ``points`` (N,3) with one of ``others`` (M,3, same frame) closer than ``radius`` (m)."""
+    from scipy.spatial import cKDTree
 
-    Leaving the others out removed most of the bias of the steps on simulated dt (pitch
-    +0.0018 -> +0.0006 deg, x -0.78 -> -0.11 mm per step; docs/mapping.md)."""
+    if len(others) == 0:
+        return np.zeros(len(points), dtype=bool)
+    tree = cKDTree(others, balanced_tree=False, compact_nodes=False)  # built once, queried once: cheap build
+    return np.isfinite(tree.query(points, distance_upper_bound=radius)[0])
+
+
+def _covariances(points: np.ndarray, radius: float, max_nn: int = 20) -> np.ndarray:
+    """(N,3,3) covariances (m^2) of the ``max_nn`` nearest neighbours within ``radius`` (m)
+    of each point (N,3), itself included (Open3D; the identity below 3 neighbours)."""
     import open3d as o3d
 
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    cloud.estimate_covariances(o3d.geometry.KDTreeSearchParamHybrid(radius=c.normal_radius_m, max_nn=20))
-    values, vectors = np.linalg.eigh(np.asarray(cloud.covariances))
+    cloud.estimate_covariances(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
+    return np.asarray(cloud.covariances)
+
+
+def _planar_points(points: np.ndarray, c: FlowRefinementConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The points (N,3, m) whose neighbourhood (``normal_radius_m``, at most 20 points) is a
+    plane (surface variation at most ``max_surface_variation``) and their unit normals.
+
+    Leaving the others out removed most of the bias of the steps on simulated dt (pitch
+    +0.0018 -> +0.0006 deg, x -0.78 -> -0.11 mm per step; docs/mapping.md). Open3D gives
+    the identity covariance to points with fewer than 3 neighbours: never planar."""
+    cov = _covariances(points, c.normal_radius_m)
+    values = symmetric_eigenvalues(cov)
     planar = values[:, 0] <= c.max_surface_variation * values.sum(axis=1)
-    return points[planar], vectors[planar, :, 0]
+    normals = smallest_eigenvectors(cov[planar], values[planar, 0])
+    ok = np.isfinite(normals[:, 0])  # a zero covariance (coincident neighbours) has no normal
+    return points[planar][ok], normals[ok]
+
+
+def _icp(src_points: np.ndarray, planar: np.ndarray, normals: np.ndarray, T_init: np.ndarray,
+         c: FlowRefinementConfig) -> np.ndarray:
+    """Point-to-plane ICP (Open3D, Tukey kernel) of ``src_points`` (frame k-1) onto the
+    planar target points and their normals (frame k), one stage per ``correspondence_m``,
+    from ``T_init``; the refined ``T_{k,k-1}`` (4,4)."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src_points))
+    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(planar))
+    tgt.normals = o3d.utility.Vector3dVector(normals)
+    criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=c.max_iterations)
+    T = np.asarray(T_init, dtype=np.float64).copy()
+    for max_dist in c.correspondence_m:
+        estimation = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=max_dist))
+        result = reg.registration_icp(src, tgt, max_dist, T, estimation, criteria)
+        T = np.asarray(result.transformation).copy()
+    return T
+
+
+def _fitness(target_tree, x: np.ndarray, reach: float) -> float:
+    """Share of the moved source points ``x`` (M,3, frame k) with a target point within ``reach`` (m)."""
+    return float(np.isfinite(target_tree.query(x, distance_upper_bound=reach)[0]).mean())
+
+
+def _snap(x: np.ndarray, planar: np.ndarray, normals: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """The moved source points ``x`` (M,3, frame k) with a planar target point within
+    ``reach`` (m): (M,) bool, and their projections (K,3, frame k) onto its tangent plane."""
+    from scipy.spatial import cKDTree
+
+    dist, j = cKDTree(planar).query(x, distance_upper_bound=reach)
+    ok = np.isfinite(dist)
+    n = normals[j[ok]]
+    d = np.einsum("ij,ij->i", x[ok] - planar[j[ok]], n)
+    return ok, x[ok] - d[:, None] * n
 
 
 def refine_static_flow(
@@ -103,56 +169,45 @@ def refine_static_flow(
     landing spots), ``static_mask`` (N,) the predicted static points, ``T_init`` the
     motion ``T_{k,k-1}`` registered from the predicted static flow.
     """
-    import open3d as o3d
     from scipy.spatial import cKDTree
 
     c = config or FlowRefinementConfig()
-    reg = o3d.pipelines.registration
     static_mask = np.asarray(static_mask, dtype=bool)
-    src = _downsample(source[static_mask], c.voxel_m, c.max_range_m)
-    if len(src.points) > c.max_source_points:
-        keep = np.random.default_rng(0).choice(len(src.points), c.max_source_points, replace=False)
-        src = src.select_by_index(np.sort(keep).tolist())
-    tgt_points = np.asarray(_downsample(target, c.voxel_m, c.max_range_m).points)
+    src_points = _voxel_centroids(source, c.voxel_m, c.max_range_m, static_mask)
+    if len(src_points) > c.max_source_points:
+        keep = np.random.default_rng(0).choice(len(src_points), c.max_source_points, replace=False)
+        src_points = src_points[np.sort(keep)]
+    tgt_points = _voxel_centroids(target, c.voxel_m, c.max_range_m)
     n_excluded = 0
     if c.dynamic_exclusion_m > 0 and not static_mask.all():
         landing = source[~static_mask] + flow[~static_mask]
-        near = cKDTree(landing).query(tgt_points, distance_upper_bound=c.dynamic_exclusion_m)[0]
-        keep = ~np.isfinite(near)
-        n_excluded = int((~keep).sum())
-        tgt_points = tgt_points[keep]
-    stats = {"refine_source_points": len(src.points), "refine_target_points": len(tgt_points),
+        near = _near_any(tgt_points, landing, c.dynamic_exclusion_m)
+        n_excluded = int(near.sum())
+        tgt_points = tgt_points[~near]
+    stats = {"refine_source_points": len(src_points), "refine_target_points": len(tgt_points),
              "refine_target_excluded": n_excluded}
-    T = np.asarray(T_init, dtype=np.float64).copy()
+    T_init = np.asarray(T_init, dtype=np.float64)
     empty = np.zeros((0, 3))
-    if len(src.points) < 10 or len(tgt_points) < 10:
-        return RefinedFlow(empty, empty, T, False, tgt_points, dict(stats, refine_reason="too few points"))
+    if len(src_points) < 10 or len(tgt_points) < 10:
+        return RefinedFlow(empty, empty, T_init.copy(), False, tgt_points, dict(stats, refine_reason="too few points"))
     planar, normals = _planar_points(tgt_points, c)  # ICP and snapping use these only
     stats["refine_target_not_planar"] = len(tgt_points) - len(planar)
     if len(planar) < 10:
-        return RefinedFlow(empty, empty, T, False, tgt_points, dict(stats, refine_reason="too few planar points"))
-    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(planar))
-    tgt.normals = o3d.utility.Vector3dVector(normals)
-    criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=c.max_iterations)
-    for max_dist in c.correspondence_m:
-        estimation = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=max_dist))
-        result = reg.registration_icp(src, tgt, max_dist, T, estimation, criteria)
-        T = np.asarray(result.transformation).copy()
+        return RefinedFlow(empty, empty, T_init.copy(), False, tgt_points,
+                           dict(stats, refine_reason="too few planar points"))
+    T = _icp(src_points, planar, normals, T_init, c)
 
     # snap: refined position moved onto the tangent plane of the nearest target point
-    p = np.asarray(src.points)
+    p = src_points
     x = transform_points(T, p)
     reach = c.correspondence_m[-1]
     target_tree = cKDTree(tgt_points)  # the overlap counts every surface, planar or not
-    fitness = float(np.isfinite(target_tree.query(x, distance_upper_bound=reach)[0]).mean())
+    fitness = _fitness(target_tree, x, reach)
     stats.update(refine_fitness=fitness, refine_correction_m=float(np.linalg.norm(T[:3, 3] - T_init[:3, 3])))
     if fitness < c.min_fitness:
         return RefinedFlow(empty, empty, T, False, tgt_points,
                            dict(stats, refine_reason=f"fitness {fitness:.2f} < {c.min_fitness}"), target_tree)
-    dist, j = cKDTree(planar).query(x, distance_upper_bound=reach)
-    ok = np.isfinite(dist)
-    normals = normals[j[ok]]
-    d = np.einsum("ij,ij->i", x[ok] - planar[j[ok]], normals)
-    q = x[ok] - d[:, None] * normals
-    stats["refine_plane_rmse_m"] = float(np.sqrt(np.mean(d * d)))
+    ok, q = _snap(x, planar, normals, reach)
+    d = q - x[ok]
+    stats["refine_plane_rmse_m"] = float(np.sqrt(np.mean(np.einsum("ij,ij->i", d, d))))
     return RefinedFlow(p[ok], q - p[ok], T, True, tgt_points, stats, target_tree, p)

@@ -1,0 +1,93 @@
+"""The faster computations of the static refinement (``flowslam.sceneflow.refinement.static``)
+against their reference computations: closed-form 3x3 eigen-decomposition vs
+``np.linalg.eigh``, voxel centroids with the range/subset selection done once vs Open3D
+on the selected points, on constructed matrices and on a real KITTI scan."""
+
+import numpy as np
+import pytest
+
+from flowslam.config import FlowRefinementConfig
+from flowslam.datasets import open_dataset
+from flowslam.sceneflow.refinement.static import _covariances, _planar_points, _voxel_centroids
+from flowslam.sceneflow.refinement.symmetric3 import smallest_eigenvectors, symmetric_eigenvalues
+
+
+def _angle_deg(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Angle (deg) between the lines of unit vectors u and v (sign ignored), row by row."""
+    return np.degrees(np.arccos(np.clip(np.abs(np.einsum("ij,ij->i", u, v)), 0.0, 1.0)))
+
+
+@pytest.fixture(scope="module")
+def kitti_target(kitti_extract):
+    """Scan 4 of the KITTI extract, downsampled as the refinement does (0.4 m, 80 m)."""
+    return _voxel_centroids(open_dataset(kitti_extract)[4].points, 0.4, 80.0)
+
+
+def test_closed_form_eigen_matches_eigh_on_constructed_spectra():
+    rng = np.random.default_rng(3)
+    spectra = np.array([[1e-6, 0.5, 2.0], [0.0, 1.0, 1.0], [0.3, 0.3, 0.3], [1e-4, 1e-4, 5.0], [0.0, 0.0, 0.0],
+                        [2.0, 3.0, 700.0]])
+    q, _ = np.linalg.qr(rng.normal(size=(len(spectra), 3, 3)))
+    cov = np.einsum("nij,nj,nkj->nik", q, spectra, q)
+    values = symmetric_eigenvalues(cov)
+    scale = np.maximum(spectra.sum(axis=1), 1e-12)
+    # ~1e-15 of the trace for distinct eigenvalues; ~sqrt(eps) at a repeated one (the cubic's double root)
+    assert np.all(np.abs(values - spectra) <= 1e-7 * scale[:, None])
+    assert np.abs(values - spectra)[[0, 5]].max() <= 1e-12 * scale[5]
+    vectors = smallest_eigenvectors(cov, values[:, 0])
+    # a simple smallest eigenvalue (rows 0, 5): its eigenvector, up to sign, within 1e-6 deg
+    assert np.all(_angle_deg(vectors[[0, 5]], q[[0, 5], :, 0]) < 1e-6)
+    # a double smallest eigenvalue (row 3, a line): a unit vector of that plane, within 0.06 deg
+    # (the eigenvalue is only good to ~sqrt(eps) there; eigh's vector is as arbitrary)
+    assert abs(np.linalg.norm(vectors[3]) - 1) < 1e-12 and abs(vectors[3] @ q[3, :, 2]) < 1e-3
+    # the zero matrix: no vector (NaN); a multiple of the identity (rounded): any unit vector
+    assert np.isnan(vectors[4]).all()
+    assert np.isnan(vectors[2]).all() or abs(np.linalg.norm(vectors[2]) - 1) < 1e-12
+
+
+def test_closed_form_eigen_matches_eigh_on_real_neighbourhoods(kitti_target):
+    c = FlowRefinementConfig()
+    cov = _covariances(kitti_target, c.normal_radius_m)
+    ref_values, ref_vectors = np.linalg.eigh(cov)
+    values = symmetric_eigenvalues(cov)
+    trace = values.sum(axis=1)
+    assert np.max(np.abs(values - ref_values) / trace[:, None]) < 1e-8
+    ref_planar = ref_values[:, 0] <= c.max_surface_variation * ref_values.sum(axis=1)
+    planar = values[:, 0] <= c.max_surface_variation * trace
+    assert ref_planar.sum() > 1000 and np.array_equal(planar, ref_planar)
+    vectors = smallest_eigenvectors(cov[planar], values[planar, 0])
+    gap = (ref_values[planar, 1] - ref_values[planar, 0]) / trace[planar]
+    angle = _angle_deg(vectors, ref_vectors[planar, :, 0])
+    well_posed = gap > 1e-3  # a defined normal: the two smallest eigenvalues apart
+    assert well_posed.mean() > 0.95 and angle[well_posed].max() < 1e-4
+    assert np.all(np.abs(np.linalg.norm(vectors, axis=1) - 1) < 1e-12)
+
+
+def test_planar_points_match_the_eigh_selection(kitti_target):
+    c = FlowRefinementConfig()
+    planar, normals = _planar_points(kitti_target, c)
+    ref_values, ref_vectors = np.linalg.eigh(_covariances(kitti_target, c.normal_radius_m))
+    ref = ref_values[:, 0] <= c.max_surface_variation * ref_values.sum(axis=1)
+    np.testing.assert_array_equal(planar, kitti_target[ref])
+    well_posed = (ref_values[ref, 1] - ref_values[ref, 0]) / ref_values[ref].sum(axis=1) > 1e-3
+    assert _angle_deg(normals, ref_vectors[ref, :, 0])[well_posed].max() < 1e-4
+
+
+@pytest.mark.parametrize("far", [False, True])
+def test_voxel_centroids_select_like_a_filtered_copy(far):
+    """The range test and the subset in one selection give Open3D exactly the points a
+    range-filtered copy of the subset would (so the voxel grid, which starts at the
+    points' minimum, is the same)."""
+    import open3d as o3d
+
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-30, 30, size=(5000, 3))
+    if far:
+        points[:40] *= 5  # some beyond the 80 m range
+    subset = rng.random(len(points)) < 0.8
+    kept = points[subset & (np.linalg.norm(points, axis=1) < 80.0)]
+    ref = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(kept)).voxel_down_sample(0.4).points)
+    np.testing.assert_array_equal(_voxel_centroids(points, 0.4, 80.0, subset), ref)
+    everything = points[np.linalg.norm(points, axis=1) < 80.0]
+    ref_all = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(everything)).voxel_down_sample(0.4).points)
+    np.testing.assert_array_equal(_voxel_centroids(points, 0.4, 80.0), ref_all)
