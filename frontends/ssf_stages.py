@@ -112,18 +112,18 @@ class NetworkStage:
     def __init__(self, config: SsfConfig):
         import torch
 
-        from flowslam.sceneflow.network.model import default_cpu_threads
+        from flowslam.sceneflow.network.model import default_cpu_threads, inference_device
         from flowslam.sceneflow.network.weights import build_model, load_weights, shipped_weights
 
         self.options = c = config.network
-        threads = c.num_threads or (default_cpu_threads() if c.device == "cpu" else None)
+        self.device = inference_device(c.device)
+        threads = c.num_threads or (default_cpu_threads(config.lookahead) if self.device.type == "cpu" else None)
         if threads:
             torch.set_num_threads(threads)
         path = c.weights or shipped_weights()
         payload = load_weights(path, require_hash=c.weights is None)
         self.weights_info = {"path": str(path), "sha256": payload["sha256"]}
         """Which weights run (recorded in ``run.json``)."""
-        self.device = torch.device(c.device)
         self.model = build_model(payload).to(self.device)
         if self.device.type == "cpu":
             from flowslam.sceneflow.network.model import tune_cpu_allocator

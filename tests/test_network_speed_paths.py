@@ -108,6 +108,15 @@ def test_default_cpu_threads_follows_wait_policy(monkeypatch, policy, expected):
     else:
         monkeypatch.setenv("OMP_WAIT_POLICY", policy)
     assert default_cpu_threads() == expected
+    assert default_cpu_threads(shares_cores=True) == 1  # ssf.lookahead: the other core is busy
+
+
+def test_auto_device_is_the_gpu_only_when_torch_sees_one():
+    from flowslam.sceneflow.network.model import inference_device
+
+    assert inference_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert inference_device("cpu") == torch.device("cpu")
+    assert inference_device("cuda:1") == torch.device("cuda:1")  # taken as it is
 
 
 def _eager_reference(frames, priors, max_points: int) -> tuple[np.ndarray, np.ndarray]:
@@ -152,3 +161,23 @@ def test_network_stage_equals_eager_model(kitti_extract):
     assert state.flow.shape == (len(frames[3].points), 3)
     np.testing.assert_allclose(state.flow, flow, rtol=0, atol=FLOW_ATOL_M)
     np.testing.assert_allclose(state.dynamic_prob, prob, rtol=0, atol=PROB_ATOL)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (none on this machine)")
+def test_network_stage_on_the_gpu_equals_the_cpu(kitti_extract):
+    """``ssf.network.device: auto`` picks the GPU when there is one: the same flow there."""
+    from flowslam.datasets import open_dataset
+    from flowslam.frontends.ssf_stages import NetworkStage, PairState
+
+    ds = open_dataset(kitti_extract)
+    frames = [ds[i] for i in range(5)]
+    poses = [f.gt_pose for f in frames]
+    states = {}
+    for device in ("cpu", "auto"):
+        stage = NetworkStage(SsfConfig(network={"device": device}))
+        states[stage.device.type] = state = PairState(prev=frames[3], frame=frames[4], history=frames[:4],
+                                                      history_poses=poses[:4], T_world_guess=poses[4])
+        stage.run(state)
+    assert set(states) == {"cpu", "cuda"}
+    np.testing.assert_allclose(states["cuda"].flow, states["cpu"].flow, rtol=0, atol=1e-3)  # TF32 / kernel order
+    assert np.mean(states["cuda"].static == states["cpu"].static) > 0.999

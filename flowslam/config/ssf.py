@@ -35,11 +35,13 @@ class NetworkStageConfig(StrictModel):
     """A point is a dynamic candidate when sigmoid(logit) exceeds this (the objects stage
     verifies candidates, so recall matters more than precision: 0.3 beat 0.5 on the
     held-out simulated sequences used for tuning)."""
-    device: str = "cpu"
-    """torch device of the network ('cpu', 'cuda', 'cuda:1', ...)."""
+    device: str = "auto"
+    """torch device of the network: 'auto' (the GPU when torch sees CUDA, else the CPU),
+    'cpu', 'cuda', 'cuda:1', ..."""
     num_threads: int | None = Field(None, ge=1)
-    """torch intra-op threads. None: 1 when ``OMP_WAIT_POLICY=PASSIVE`` (the CLI's default;
-    a second thread gains nothing there, measured), else torch's default
+    """torch intra-op threads on the CPU. None: 1 when ``OMP_WAIT_POLICY=PASSIVE`` (the
+    CLI's default; a second thread gains nothing there, measured) or with ``ssf.lookahead``
+    (the other core runs the rest of the frame), else torch's default
     (``flowslam.sceneflow.network.model.default_cpu_threads``)."""
 
 

@@ -54,7 +54,8 @@ from flowslam.sceneflow.network.flowssm import FlowSSMDecoder, bilinear_gather, 
 from flowslam.sceneflow.network.voxelize import BEVGrid, PillarEncoder, index_points
 
 __all__ = [
-    "ModelConfig", "SceneFlowNet", "full_flow", "tune_cpu_allocator", "default_cpu_threads", "OUTSIDE_LOGIT", "PRESETS",
+    "ModelConfig", "SceneFlowNet", "full_flow", "tune_cpu_allocator", "default_cpu_threads", "inference_device", "OUTSIDE_LOGIT",
+    "PRESETS",
 ]
 
 OUTSIDE_LOGIT = -20.0
@@ -289,10 +290,20 @@ def tune_cpu_allocator(mmap_threshold: int = 256 << 20, trim_threshold: int = 51
         return False
 
 
-def default_cpu_threads() -> int | None:
+def inference_device(choice: str):
+    """The ``torch.device`` of ``choice``: ``"auto"`` is the first CUDA device when torch
+    sees one, else the CPU; any other string is taken as it is (``"cpu"``, ``"cuda:1"``)."""
+    if choice == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(choice)
+
+
+def default_cpu_threads(shares_cores: bool = False) -> int | None:
     """Intra-op threads for CPU inference when the user set none: 1 under passive OpenMP
-    waiting (``OMP_WAIT_POLICY=PASSIVE``, what the CLI sets unless the user set it), else
-    None (keep torch's default).
+    waiting (``OMP_WAIT_POLICY=PASSIVE``, what the CLI sets unless the user set it) or when
+    the network ``shares_cores`` with other work running at the same time (``ssf.lookahead``:
+    a spinning second thread would take the other thread's core), else None (keep torch's
+    default).
 
     With passive waiting every parallel op wakes a sleeping worker; the network runs
     ~1,000 ops per scan, so a second thread gains nothing: measured on the 2-core
@@ -304,7 +315,8 @@ def default_cpu_threads() -> int | None:
     """
     import os
 
-    return 1 if os.environ.get("OMP_WAIT_POLICY", "").strip().upper() == "PASSIVE" else None
+    passive = os.environ.get("OMP_WAIT_POLICY", "").strip().upper() == "PASSIVE"
+    return 1 if passive or shares_cores else None
 
 
 def full_flow(points_src: Tensor, points_src_compensated: Tensor, residual: Tensor) -> Tensor:
