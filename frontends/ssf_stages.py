@@ -117,6 +117,7 @@ class NetworkStage:
 
         self.options = c = config.network
         self.device = inference_device(c.device)
+        self._trim_every = 0  # heap trims: only after tuning the CPU allocator (below)
         threads = c.num_threads or (default_cpu_threads(config.lookahead) if self.device.type == "cpu" else None)
         if threads:
             torch.set_num_threads(threads)
@@ -129,8 +130,9 @@ class NetworkStage:
             from flowslam.sceneflow.network.model import tune_cpu_allocator
 
             self.model.fold_batchnorm()  # inference only: BatchNorm folded into the convolutions
-            tune_cpu_allocator()
+            self._trim_every = c.trim_heap_every if tune_cpu_allocator() else 0
         self.num_frames = self.model.config.num_frames
+        self._runs = 0
 
     def run(self, state: PairState) -> None:
         from flowslam.sceneflow.network.model import full_flow
@@ -143,6 +145,11 @@ class NetworkStage:
         state.flow = full_flow(prev, compensated, values[:, :3])
         state.dynamic_prob = 1.0 / (1.0 + np.exp(-values[:, 3]))
         state.static = state.dynamic_prob < self.options.dynamic_threshold
+        self._runs += 1
+        if self._trim_every and self._runs % self._trim_every == 0:
+            from flowslam.sceneflow.network.model import release_free_heap
+
+            release_free_heap()
 
     def _sample(self, state: PairState):
         """The network input: the last T scans (the oldest repeated at the start of a

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from collections import defaultdict
 
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -181,3 +183,25 @@ def test_network_stage_on_the_gpu_equals_the_cpu(kitti_extract):
     assert set(states) == {"cpu", "cuda"}
     np.testing.assert_allclose(states["cuda"].flow, states["cpu"].flow, rtol=0, atol=1e-3)  # TF32 / kernel order
     assert np.mean(states["cuda"].static == states["cpu"].static) > 0.999
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc tuning is Linux-only")
+def test_release_free_heap_returns_what_the_tuned_allocator_keeps():
+    """With the inference tuning (freed blocks stay in the heap) the resident set keeps what
+    was freed; ``release_free_heap`` (``ssf.network.trim_heap_every``) hands it back."""
+    import os
+
+    from flowslam.sceneflow.network.model import release_free_heap, tune_cpu_allocator
+
+    def rss_mb() -> float:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+
+    assert tune_cpu_allocator()
+    blocks = [np.ones(1 << 20) for _ in range(40)]  # 40 x 8 MB, touched, below the mmap threshold
+    held = rss_mb()
+    del blocks
+    kept = rss_mb()
+    assert release_free_heap()
+    assert kept > held - 100  # the tuned heap kept the freed blocks resident
+    assert rss_mb() < kept - 200  # the trim handed (most of) the 320 MB back

@@ -3,6 +3,7 @@ memory and per-frame time, then a SIGTERM at a random frame and a restart from s
 
     .venv/bin/python tools/soak.py                       # 4,500 frames, kiss-icp + isam2 s-loam
     .venv/bin/python tools/soak.py --frontend ssf --frames 600 --out results/soak-ssf
+    .venv/bin/python tools/soak.py --frontend ssf --frames 1800 --set ssf.lookahead=false  # config overrides
 
 1. Simulates (once; cached like the demo's) the ``kitti00-path`` preset: the real
    KITTI-00 path (3.7 km, real loops) with a town and traffic around it, on a 64-beam
@@ -137,12 +138,14 @@ class StageTimer:
         return out
 
 
-def run_in_process(sequence: Path, frontend: str, out: Path, max_frames: int | None = None) -> dict:
-    """The run, with per-frame wall and CPU time, per-stage time, RSS and component bytes."""
+def run_in_process(sequence: Path, frontend: str, out: Path, max_frames: int | None = None,
+                   options: dict | None = None) -> dict:
+    """The run, with per-frame wall and CPU time, per-stage time, RSS and component bytes;
+    ``options``: dotted config overrides (``{"ssf.lookahead": False}``)."""
     from flowslam.config import load_config
     from flowslam.run import run_sequence
 
-    overrides = {"dataset.max_frames": max_frames} if max_frames else {}
+    overrides = dict(options or {}, **({"dataset.max_frames": max_frames} if max_frames else {}))
     cfg = load_config(frontend=frontend, backend="isam2", variant="s-loam", output_dir=str(out / "runs"), **overrides)
     seconds, cpu, rss, stages, components = [], [], [], {stage: [] for stage in STAGES}, []
     timer = StageTimer()
@@ -304,6 +307,18 @@ def plot(full: dict, path: Path, title: str) -> None:
     fig.savefig(path, dpi=110)
 
 
+def _overrides(pairs: list[str]) -> dict:
+    """``KEY=VALUE`` strings -> {KEY: VALUE}, VALUE parsed as JSON when it is JSON."""
+    out = {}
+    for pair in pairs:
+        key, _, value = pair.partition("=")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=4500)
@@ -315,6 +330,8 @@ def main() -> None:
     ap.add_argument("--window", type=int, default=500, help="frames of the first/last medians")
     ap.add_argument("--cache-dir", type=Path, default=None)
     ap.add_argument("--out", type=Path, default=Path("results/soak"))
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config override, e.g. ssf.lookahead=false (VALUE read as JSON, else a string)")
     ap.add_argument("--skip-sigterm", action="store_true")
     ap.add_argument("--sigterm-only", action="store_true",
                     help="only the SIGTERM/restart check, added to the soak.json already in --out")
@@ -330,7 +347,7 @@ def main() -> None:
         print(json.dumps(report["sigterm"], indent=2), flush=True)
         (args.out / "soak.json").write_text(json.dumps(report, indent=1) + "\n")
         return
-    full = run_in_process(sequence, args.frontend, args.out, args.max_frames)
+    full = run_in_process(sequence, args.frontend, args.out, args.max_frames, _overrides(args.set))
     report = dict(frontend=args.frontend, backend="isam2 s-loam", sequence=str(sequence), columns=args.columns,
                   summary=summarize(full, args.warmup, args.window), metrics=full["metrics"],
                   components=full["components"])

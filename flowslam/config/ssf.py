@@ -43,6 +43,11 @@ class NetworkStageConfig(StrictModel):
     CLI's default; a second thread gains nothing there, measured) or with ``ssf.lookahead``
     (the other core runs the rest of the frame), else torch's default
     (``flowslam.sceneflow.network.model.default_cpu_threads``)."""
+    trim_heap_every: int = Field(25, ge=0)
+    """On the CPU the stage tunes glibc to keep freed blocks for reuse (faster); every this
+    many scans it hands the heap's free pages back to the OS (``malloc_trim``), so that the
+    resident set does not ratchet up (1,800-scan run: 1.8 GB without, ~0.55 GB flat with,
+    ~16 ms a trim). 0: never."""
 
 
 class PoseStartConfig(StrictModel):

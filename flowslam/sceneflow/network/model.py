@@ -54,8 +54,8 @@ from flowslam.sceneflow.network.flowssm import FlowSSMDecoder, bilinear_gather, 
 from flowslam.sceneflow.network.voxelize import BEVGrid, PillarEncoder, index_points
 
 __all__ = [
-    "ModelConfig", "SceneFlowNet", "full_flow", "tune_cpu_allocator", "default_cpu_threads", "inference_device", "OUTSIDE_LOGIT",
-    "PRESETS",
+    "ModelConfig", "SceneFlowNet", "full_flow", "tune_cpu_allocator", "release_free_heap", "default_cpu_threads", "inference_device",
+    "OUTSIDE_LOGIT", "PRESETS",
 ]
 
 OUTSIDE_LOGIT = -20.0
@@ -286,6 +286,25 @@ def tune_cpu_allocator(mmap_threshold: int = 256 << 20, trim_threshold: int = 51
         M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameter numbers
         ok = libc.mallopt(M_MMAP_THRESHOLD, int(mmap_threshold)) == 1
         return bool(ok and libc.mallopt(M_TRIM_THRESHOLD, int(trim_threshold)) == 1)
+    except (OSError, AttributeError):
+        return False
+
+
+def release_free_heap() -> bool:
+    """Hand the heap's whole free pages back to the OS, in every arena (glibc ``malloc_trim``;
+    Linux only): the counterpart of :func:`tune_cpu_allocator`, whose thresholds otherwise
+    let the resident set ratchet up to the peak heap plus its fragmentation (measured: 1.8 GB
+    after 500 scans of a 64-beam ``ssf`` run; ~550 MB, flat, with a trim every 25 scans, at
+    ~16 ms a trim). Returns whether it ran."""
+    import ctypes
+    import ctypes.util
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
+        return True
     except (OSError, AttributeError):
         return False
 
