@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import csv
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -35,7 +35,8 @@ log = logging.getLogger(__name__)
 
 __all__ = ["MovingObject", "MovingObjectsLog", "ego_compensated_flow", "moving_objects", "CSV_HEADER"]
 
-CSV_HEADER = ("frame", "timestamp", "instance_id", "n_points", "cx", "cy", "cz", "vx", "vy", "vz", "speed")
+CSV_HEADER = ("frame", "timestamp", "instance_id", "n_points", "cx", "cy", "cz", "vx", "vy", "vz", "speed",
+              "track_id", "track_age", "sx", "sy", "sz")
 
 
 @dataclass
@@ -50,6 +51,12 @@ class MovingObject:
     """(3,) mean of the instance's dynamic points, sensor frame of scan ``frame`` (m)."""
     velocity: np.ndarray
     """(3,) ego-compensated velocity, sensor frame of scan ``frame`` (m/s)."""
+    size: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    """(3,) extent of the instance's dynamic points along the sensor axes (axis-aligned box, m)."""
+    track_id: int = -1
+    """The object's id across scans (:class:`flowslam.object_tracks.ObjectTracker`); -1: untracked."""
+    track_age: int = 0
+    """Scans since its track began (0: first seen in this scan)."""
 
     def in_world(self, T_world_sensor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(centroid, velocity) in the world frame, given scan ``frame``'s pose."""
@@ -114,10 +121,13 @@ def moving_objects(
     V = len(uid)
     centroid = np.stack([np.bincount(inverse, p[:, i], V) for i in range(3)], axis=1) / counts[:, None]
     velocity = np.stack([np.bincount(inverse, d[:, i], V) for i in range(3)], axis=1) / counts[:, None] / dt
+    lo, hi = np.full((V, 3), np.inf), np.full((V, 3), -np.inf)
+    np.minimum.at(lo, inverse, p)
+    np.maximum.at(hi, inverse, p)
     speed = np.linalg.norm(velocity, axis=1)
     keep = (counts >= min_points) & (speed >= min_speed)
     return [
-        MovingObject(int(frame), float(timestamp), int(uid[j]), int(counts[j]), centroid[j], velocity[j])
+        MovingObject(int(frame), float(timestamp), int(uid[j]), int(counts[j]), centroid[j], velocity[j], hi[j] - lo[j])
         for j in np.flatnonzero(keep)
     ]
 
@@ -125,19 +135,30 @@ def moving_objects(
 class MovingObjectsLog:
     """Accumulates :class:`MovingObject` rows over a run; writes them as CSV in the world frame."""
 
-    def __init__(self, min_points: int = 1, min_speed: float = 0.0):
+    def __init__(self, min_points: int = 1, min_speed: float = 0.0, tracker=None):
+        """``tracker``: an :class:`flowslam.object_tracks.ObjectTracker` (default: its
+        defaults) that gives the objects of successive scans their track ids."""
+        from flowslam.object_tracks import ObjectTracker
+
         self.min_points = min_points
         self.min_speed = min_speed
+        self.tracker = tracker or ObjectTracker()
         self.objects: list[MovingObject] = []
         self._last: tuple[int, float] | None = None
+        self._T_odom = np.eye(4)
+        """Pose of the last scan in the odometry frame (its ``T_prev_curr`` chained)."""
 
     def add(self, objects: list[MovingObject]) -> None:
         self.objects.extend(objects)
 
     def on_output(self, frame, output) -> None:
         """``run_pipeline(on_output=...)`` adapter: logs the moving instances of the previous
-        scan when the output has points, flow, instance ids and a motion."""
+        scan when the output has points, flow, instance ids and a motion, with their track
+        ids (the tracker works in the frame of the chained ``T_prev_curr``)."""
         last, self._last = self._last, (int(frame.index), float(frame.timestamp))
+        T_odom_prev = self._T_odom
+        if output.T_prev_curr is not None:
+            self._T_odom = T_odom_prev @ output.T_prev_curr
         if (
             last is None or output.T_prev_curr is None or output.points is None
             or output.flow is None or output.instance_ids is None
@@ -147,10 +168,12 @@ class MovingObjectsLog:
         if not dt > 0:
             log.warning("moving objects: scan %d has a non-increasing timestamp; skipped", frame.index)
             return
-        self.add(moving_objects(
+        objects = moving_objects(
             output.points, output.flow, output.instance_ids, output.T_prev_curr, dt, output.static_mask,
             frame=last[0], timestamp=last[1], min_points=self.min_points, min_speed=self.min_speed,
-        ))
+        )
+        self.tracker.assign(objects, last[0], last[1], T_odom_prev)
+        self.add(objects)
 
     def rows(
         self, poses: Mapping[int, np.ndarray] | np.ndarray | None = None, indices: Sequence[int] | None = None
@@ -168,7 +191,8 @@ class MovingObjectsLog:
             else:
                 missing += 1
                 continue
-            out.append((ob.frame, ob.timestamp, ob.instance_id, ob.n_points, *c, *v, float(np.linalg.norm(v))))
+            out.append((ob.frame, ob.timestamp, ob.instance_id, ob.n_points, *c, *v, float(np.linalg.norm(v)),
+                        ob.track_id, ob.track_age, *ob.size))
         if missing:
             log.warning("moving objects: %d row(s) without a pose left out", missing)
         return out
@@ -179,13 +203,15 @@ class MovingObjectsLog:
         poses: Mapping[int, np.ndarray] | np.ndarray | None = None,
         indices: Sequence[int] | None = None,
     ) -> Path:
-        """Write ``frame,timestamp,instance_id,n_points,cx,cy,cz,vx,vy,vz,speed`` (world
-        frame with ``poses``; m, m/s, timestamp s)."""
+        """Write ``CSV_HEADER``: frame, timestamp (s), the frontend's instance id, points,
+        centroid and velocity (world frame with ``poses``; m, m/s), speed (m/s), track id,
+        track age (scans), extent along the scan's sensor axes (m)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         with open(path, "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(CSV_HEADER)
             for r in self.rows(poses, indices):
-                w.writerow([r[0], f"{r[1]:.6f}", r[2], r[3], *(f"{x:.4f}" for x in r[4:])])
+                w.writerow([r[0], f"{r[1]:.6f}", r[2], r[3], *(f"{x:.4f}" for x in r[4:11]), r[11], r[12],
+                            *(f"{x:.3f}" for x in r[13:])])
         return path

@@ -60,7 +60,7 @@ def _catalogue(camera0: bool) -> dict[str, tuple[str, str | None]]:
                                MAP_WORLD + ", each point at its own scan's pose"),
         "graph.g2o": ("g2o: VERTEX_SE3:QUAT (id = frame index), EDGE_SE3:QUAT T_i_j",
                       SENSOR + " (vertices are the final poses)"),
-        "moving_objects.csv": ("CSV: frame, instance, centroid (m), velocity (m/s), points", MAP_WORLD),
+        "moving_objects.csv": ("CSV: frame, instance, points, centroid (m), velocity and speed (m/s), track id and age, extent (m)", MAP_WORLD),
         "loops.csv": ("CSV: frames i j, ICP fitness, inlier RMSE (m), correction (m, deg)", None),
         "config.yaml": ("YAML: the run's configuration (re-usable with --config)", None),
         "run.json": ("JSON: what happened (frames, speed, errors, files)", None),

@@ -25,7 +25,7 @@ the trajectory of the frames it processed):
   world frame with the final poses; x y z, intensity, instance (-1 none), frame.
 - ``graph.g2o``: the factor graph of a graph backend (``isam2``) with the final poses
   (see ``flowslam.graph_export``).
-- ``moving_objects.csv``: per frame, each moving instance's centroid and velocity
+- ``moving_objects.csv``: per frame, each moving instance's centroid, velocity, track id and extent
   (world frame; only frontends that give instance ids).
 """
 

@@ -92,13 +92,17 @@ def test_log_on_output_and_csv(tmp_path: Path):
     with open(path) as f:
         rows = list(csv.reader(f))
     assert tuple(rows[0]) == CSV_HEADER == (
-        "frame", "timestamp", "instance_id", "n_points", "cx", "cy", "cz", "vx", "vy", "vz", "speed")
+        "frame", "timestamp", "instance_id", "n_points", "cx", "cy", "cz", "vx", "vy", "vz", "speed",
+        "track_id", "track_age", "sx", "sy", "sz")
     assert len(rows) == 2
     r = rows[1]
     assert (int(r[0]), float(r[1]), int(r[2]), int(r[3])) == (7, 1000.0, 42, 400)
     np.testing.assert_allclose([float(x) for x in r[4:7]], c_world, atol=1e-4)
     np.testing.assert_allclose([float(x) for x in r[7:10]], v_world, atol=1e-4)
     assert float(r[10]) == pytest.approx(10.0, abs=1e-4)
+    assert (int(r[11]), int(r[12])) == (0, 0)  # the first track, first seen here
+    own = points[(ids == 42) & dynamic]
+    np.testing.assert_allclose([float(x) for x in r[13:16]], np.ptp(own, axis=0), atol=1e-3)  # sensor axes
     assert log.rows(poses=None)[0][4:7] == tuple(log.objects[0].centroid)  # sensor frame without poses
     assert log.rows({8: np.eye(4)}) == []  # no pose for scan 7: left out
 
