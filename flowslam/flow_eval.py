@@ -63,9 +63,14 @@ class FlowEvaluation:
     """
 
     def __init__(self, gt_poses: np.ndarray, scored: set[int] | None = None):
+        from flowslam.moving_objects import MovingObjectsLog
+        from flowslam.sceneflow.object_metrics import ObjectScores
+
         self.gt_poses = gt_poses
         self.scored = scored
         self.method, self.reference = _Accumulator(), _Accumulator()
+        self.objects = ObjectScores()
+        self._tracks = MovingObjectsLog()  # the method's objects with track ids, as ``flowslam run`` logs them
         self.ego_t: list[float] = []
         self.ego_r: list[float] = []
         self.dts: list[float] = []
@@ -73,6 +78,8 @@ class FlowEvaluation:
 
     def on_output(self, frame: Frame, out: FrontendOutput) -> None:
         prev, self._prev = self._prev, frame
+        logged = len(self._tracks.objects)
+        self._tracks.on_output(frame, out)
         if prev is None or prev.gt_flow is None or (self.scored is not None and frame.index not in self.scored):
             return
         T_curr_prev = geometry.relative(self.gt_poses[frame.index], self.gt_poses[prev.index])
@@ -89,6 +96,20 @@ class FlowEvaluation:
             self.ego_t.append(float(geometry.translation_norm(E)))
             self.ego_r.append(float(np.degrees(geometry.rotation_angle(E))))
         self.dts.append(frame.timestamp - prev.timestamp)
+        if prev.gt_instance is not None and out.instance_ids is not None and out.static_mask is not None:
+            self._score_objects(prev, out, T_curr_prev, self._tracks.objects[logged:])
+
+    def _score_objects(self, prev: Frame, out: FrontendOutput, T_curr_prev: np.ndarray, logged: list) -> None:
+        """Instance metrics of the pair (:mod:`flowslam.sceneflow.object_metrics`)."""
+        from flowslam.moving_objects import moving_objects
+
+        dt = float(self._prev.timestamp - prev.timestamp)
+        gt_dynamic = np.asarray(prev.gt_dynamic, bool)
+        gt = np.where(gt_dynamic, prev.gt_instance, -1)
+        pred = np.where(np.asarray(out.static_mask, bool), -1, out.instance_ids)
+        truth = moving_objects(prev.points, prev.gt_flow, prev.gt_instance, geometry.inv(T_curr_prev), dt, ~gt_dynamic)
+        self.objects.add(pred, gt, {o.instance_id: o.velocity for o in logged},
+                         {o.instance_id: o.velocity for o in truth}, {o.instance_id: o.track_id for o in logged})
 
     def result(self, frontend_name: str) -> dict:
         """Every metric, JSON-serialisable."""
@@ -99,6 +120,7 @@ class FlowEvaluation:
             "pairs": len(self.dts),
             "flow": self.method.metrics(dt),
             "ego-gt reference": self.reference.metrics(dt),
+            "objects": self.objects.result() if self.objects.pairs else None,
             "ego_motion_error": {
                 "trans_m_mean": float(np.mean(t)) if t else None,
                 "trans_m_rmse": float(np.sqrt(np.mean(np.square(t)))) if t else None,

@@ -1,0 +1,79 @@
+"""Moving-object metrics on hand-computed cases (``flowslam.sceneflow.object_metrics``),
+then through ``flowslam flow-eval``'s sink on a simulated sequence."""
+
+import numpy as np
+import pytest
+
+from flowslam.sceneflow.object_metrics import ObjectScores, match_instances
+
+
+def _ids(*runs: tuple[int, int]) -> np.ndarray:
+    """Per-point ids from (id, count) runs, in order."""
+    return np.concatenate([np.full(n, i) for i, n in runs])
+
+
+def test_match_instances_cover_and_iou_rules():
+    # GT object 1: 100 points; predicted 7 holds 80 of them + 20 others -> cover 0.8, IoU 80/120
+    # GT object 2: 100 points; predicted 8 holds 60 of them + 90 others -> cover 0.6, IoU 60/190 < 0.5
+    # GT object 3: 30 points (< 50: not an object); predicted 9: 60 points of the background
+    gt = _ids((1, 100), (2, 100), (3, 30), (-1, 20), (-1, 90), (-1, 60))
+    pred = _ids((7, 80), (-1, 20), (8, 60), (-1, 40), (-1, 30), (7, 20), (8, 90), (9, 60))
+    found, gt_objects, pred_objects = match_instances(pred, gt)
+    assert found == {1: 7}
+    assert gt_objects == [1, 2] and pred_objects == [7, 8, 9]
+    # looser IoU: object 2 is found too
+    found, _, _ = match_instances(pred, gt, min_iou=0.3)
+    assert found == {1: 7, 2: 8}
+
+
+def test_the_largest_overlap_is_the_candidate():
+    # GT object 1 (100 points) split 55 / 45 between predicted 4 and 5: 4 is the candidate
+    gt = _ids((1, 100))
+    pred = _ids((4, 55), (5, 45))
+    found, _, pred_objects = match_instances(pred, gt, min_points=40)
+    assert found == {1: 4} and pred_objects == [4, 5]
+    assert match_instances(pred, gt, min_cover=0.6)[0] == {}  # 55 % < 60 %
+
+
+def test_object_scores_recall_precision_velocity_and_id_switches():
+    scores = ObjectScores()
+    gt = _ids((1, 100), (2, 100))
+    pred = _ids((7, 100), (-1, 100))
+    v_gt = {1: np.array([10.0, 0.0, 0.0]), 2: np.array([0.0, 5.0, 0.0])}
+    # pair 1: object 1 found (track 0); object 2 missed; a false predicted object (9)
+    scores.add(np.concatenate([pred, np.full(60, 9)]), np.concatenate([gt, np.full(60, -1)]),
+               {7: np.array([9.0, 1.0, 0.0]), 9: np.zeros(3)}, v_gt, {7: 0, 9: 1})
+    # pair 2: both found; object 1 now by track 3 (a switch)
+    scores.add(_ids((7, 100), (8, 100)), gt, {7: np.array([10.0, 0.0, 0.0]), 8: np.array([0.0, 4.0, 0.0])},
+               v_gt, {7: 3, 8: 2})
+    # pair 3: object 1 by track 3 again (no switch)
+    scores.add(pred, gt, {7: np.array([10.0, 0.0, 0.0])}, v_gt, {7: 3})
+    r = scores.result()
+    assert (r["gt_objects"], r["predicted_objects"], r["found"]) == (6, 5, 4)
+    assert r["recall"] == pytest.approx(4 / 6)
+    assert r["precision"] == pytest.approx(4 / 5)
+    speed = [abs(np.hypot(9, 1) - 10), 0.0, 1.0, 0.0]
+    velocity = [np.hypot(1, 1), 0.0, 1.0, 0.0]
+    assert r["median_speed_error_mps"] == pytest.approx(np.median(speed))
+    assert r["median_velocity_error_mps"] == pytest.approx(np.median(velocity))
+    assert r["id_switches_per_100_pairs"] == pytest.approx(100 / 3)
+
+
+def test_nothing_to_count_gives_none():
+    r = ObjectScores().result()
+    assert r["recall"] is None and r["precision"] is None and r["median_speed_error_mps"] is None
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_flow_eval_reports_object_metrics_for_ssf_on_simulation(tmp_path):
+    from flowslam.config import PipelineConfig
+    from flowslam.flow_eval import evaluate_flow
+    from flowslam.simulation import simulate
+
+    simulate(tmp_path / "dt", preset="dt", frames=6, seed=21, sensor="vlp32c")
+    gt = evaluate_flow(tmp_path / "dt", PipelineConfig(frontend="gt", backend="odometry"))["objects"]
+    assert gt["recall"] == 1.0 and gt["precision"] == 1.0 and gt["median_speed_error_mps"] < 1e-6
+    ssf = evaluate_flow(tmp_path / "dt", PipelineConfig(frontend="ssf", backend="odometry"))["objects"]
+    assert ssf["gt_objects"] == gt["gt_objects"] > 0
+    assert 0 < ssf["found"] <= ssf["gt_objects"]
+    assert ssf["median_speed_error_mps"] is not None and ssf["median_speed_error_mps"] < 1.0
