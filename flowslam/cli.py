@@ -541,7 +541,7 @@ def flow_eval_command(
         table.add_column(frontend, justify="right")
         table.add_column("ego-gt reference", justify="right")
         ref = result["ego-gt reference"]
-        for key in ["EPE3D", "AccStrict", "AccRelax", "Outliers", "EPE_3way", "EPE_FD", "EPE_FS", "EPE_BS", "DynamicIoU"]:
+        for key in ["EPE3D", "AccStrict", "AccRelax", "Outliers", "EPE_3way", "EPE_FD", "EPE_FS", "EPE_BS", "DynamicIoU", "SSA"]:
             a, b = result["flow"].get(key), ref.get(key)
             table.add_row(key, "-" if a is None else f"{a:.4f}", "-" if b is None else f"{b:.4f}")
         e = result["ego_motion_error"]

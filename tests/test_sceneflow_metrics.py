@@ -36,6 +36,8 @@ def test_av2_perfect_odometry_objects_static_scores_0227(av2_pair):
     full = M.flow_metrics(ego, f.gt_flow, f.gt_dynamic, f.gt_class, f.extras["is_ground"], f.points, ego_flow=ego)
     assert full["EPE_3way"] == out["EPE_3way"]
     assert full["DynamicIoU"] == 0.0  # predicts nothing dynamic
+    m = M.av2_eval_mask(f.points, f.extras["is_ground"])  # SSA: all static -> the static share
+    assert full["SSA"] == pytest.approx(1.0 - f.gt_dynamic[m].mean())
     assert full["bucketed/Mean/dynamic"] == pytest.approx(1.0)  # zero residual: EPE == speed in every bucket
 
 
@@ -46,7 +48,15 @@ def test_av2_gt_flow_scores_zero(av2_pair):
     for key in ("EPE3D", "EPE_FD", "EPE_FS", "EPE_BS", "EPE_3way", "Outliers", "bucketed/Mean/static",
                 "bucketed/Mean/dynamic"):
         assert out[key] == 0.0, key
-    assert out["AccStrict"] == out["AccRelax"] == out["DynamicIoU"] == 1.0
+    assert out["AccStrict"] == out["AccRelax"] == out["DynamicIoU"] == out["SSA"] == 1.0
+
+
+def test_segmentation_accuracy_known_answer():
+    pred = np.array([True, True, False, False, False])
+    gt = np.array([True, False, False, True, False])
+    assert M.segmentation_accuracy(pred, gt) == pytest.approx(3 / 5)
+    assert M.segmentation_accuracy(pred, gt, mask=np.array([1, 1, 0, 0, 0], bool)) == pytest.approx(1 / 2)
+    assert math.isnan(M.segmentation_accuracy(pred[:0], gt[:0]))
 
 
 def test_accuracy_and_outliers_known_answers():

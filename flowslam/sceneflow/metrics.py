@@ -207,6 +207,17 @@ def dynamic_iou(pred_dynamic: np.ndarray, gt_dynamic: np.ndarray, mask: np.ndarr
     return float(tp / denom) if denom else float("nan")
 
 
+def segmentation_accuracy(pred_dynamic: np.ndarray, gt_dynamic: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """SSA: the share of points whose static/dynamic label is right (NaN without points).
+    SSF-PAN (Table VI) reports an SSA without defining it; this is the plain per-point
+    accuracy of the binary motion segmentation, so it is dominated by the static points
+    (a segmentation that calls everything static scores the static share)."""
+    p, g = np.asarray(pred_dynamic, bool), np.asarray(gt_dynamic, bool)
+    if mask is not None:
+        p, g = p[mask], g[mask]
+    return float(np.mean(p == g)) if len(p) else float("nan")
+
+
 def flow_metrics(
     pred: np.ndarray,
     gt: np.ndarray,
@@ -222,7 +233,7 @@ def flow_metrics(
 
     EPE3D / AccStrict / AccRelax / Outliers and the 3-way EPE are computed on the AV2
     evaluation points (not ground, ``|x|, |y| <= 35`` m). The bucketed EPE needs
-    ``ego_flow`` (the true ego-motion flow, to form residuals); Dynamic IoU needs
+    ``ego_flow`` (the true ego-motion flow, to form residuals); Dynamic IoU and SSA need
     ``pred_dynamic`` or ``ego_flow`` (then a point is predicted dynamic when its predicted
     residual speed is at least 0.5 m/s). Keys missing their inputs are left out.
     """
@@ -240,6 +251,7 @@ def flow_metrics(
         pred_dynamic = dynamic_from_flow(pred, ego_flow, dt)
     if pred_dynamic is not None:
         out["DynamicIoU"] = dynamic_iou(pred_dynamic, dynamic, m)
+        out["SSA"] = segmentation_accuracy(pred_dynamic, dynamic, m)
     if ego_flow is not None:
         ego = np.asarray(ego_flow, np.float64)
         p = np.asarray(points)
