@@ -36,6 +36,19 @@ def test_truncated_bin_keeps_the_frames_before(kitti_extract, tmp_path):
     assert info["frames_processed"] == 3 and info["failed_index"] == 3 and "multiple of 16" in info["error"]
 
 
+def test_truncated_bin_with_ssf_reading_ahead_keeps_the_frames_before(kitti_extract, tmp_path):
+    """``ssf`` with two threads: the run loop reads scan k+1 early for the frontend; a bad
+    scan there must still stop the run at its own turn, with every scan before it kept."""
+    scans = write_kitti_bins(kitti_extract, tmp_path / "seq", 5)
+    data = scans[3].read_bytes()
+    scans[3].write_bytes(data[: len(data) - 7])
+    proc = run(tmp_path / "seq", tmp_path / "r", "-f", "ssf")
+    assert_one_line_error(proc, str(scans[3]), "multiple of 16")
+    latest = tmp_path / "r" / "latest"
+    assert len(read_trajectory(latest / "trajectory_tum.txt")) == 3
+    assert json.loads((latest / "run.json").read_text())["failed_index"] == 3
+
+
 def test_nonfinite_points_are_dropped_and_counted(kitti_extract, tmp_path):
     scans = write_kitti_bins(kitti_extract, tmp_path / "seq", 3)
     rec = np.fromfile(scans[1], dtype=np.float32).reshape(-1, 4)
