@@ -112,7 +112,8 @@ class NetworkStage:
     def __init__(self, config: SsfConfig):
         import torch
 
-        from flowslam.sceneflow.network.model import default_cpu_threads, inference_device
+        from flowslam.sceneflow.network.device import inference_device
+        from flowslam.sceneflow.network.model import default_cpu_threads
         from flowslam.sceneflow.network.weights import build_model, load_weights, shipped_weights
 
         self.options = c = config.network

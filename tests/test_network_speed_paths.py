@@ -114,7 +114,7 @@ def test_default_cpu_threads_follows_wait_policy(monkeypatch, policy, expected):
 
 
 def test_auto_device_is_the_gpu_only_when_torch_sees_one():
-    from flowslam.sceneflow.network.model import inference_device
+    from flowslam.sceneflow.network.device import inference_device
 
     assert inference_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
     assert inference_device("cpu") == torch.device("cpu")

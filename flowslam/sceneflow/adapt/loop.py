@@ -104,11 +104,11 @@ def open_sequences(paths: list[Path], config: PipelineConfig) -> list[Sequence]:
 
 
 def _device(choice: str) -> torch.device:
-    if choice == "cuda" or (choice == "auto" and torch.cuda.is_available()):
-        if not torch.cuda.is_available():
-            raise InputError(None, "adapt.device is 'cuda' but torch sees no CUDA device")
-        return torch.device("cuda")
-    return torch.device("cpu")
+    from flowslam.sceneflow.network.device import inference_device
+
+    if choice == "cuda" and not torch.cuda.is_available():
+        raise InputError(None, "adapt.device is 'cuda' but torch sees no CUDA device")
+    return inference_device(choice)
 
 
 # -- the loss ---------------------------------------------------------------------------------

@@ -54,8 +54,8 @@ from flowslam.sceneflow.network.flowssm import FlowSSMDecoder, bilinear_gather, 
 from flowslam.sceneflow.network.voxelize import BEVGrid, PillarEncoder, index_points
 
 __all__ = [
-    "ModelConfig", "SceneFlowNet", "full_flow", "tune_cpu_allocator", "release_free_heap", "default_cpu_threads", "inference_device",
-    "OUTSIDE_LOGIT", "PRESETS",
+    "ModelConfig", "SceneFlowNet", "full_flow", "tune_cpu_allocator", "release_free_heap", "default_cpu_threads", "OUTSIDE_LOGIT",
+    "PRESETS",
 ]
 
 OUTSIDE_LOGIT = -20.0
@@ -307,14 +307,6 @@ def release_free_heap() -> bool:
         return True
     except (OSError, AttributeError):
         return False
-
-
-def inference_device(choice: str):
-    """The ``torch.device`` of ``choice``: ``"auto"`` is the first CUDA device when torch
-    sees one, else the CPU; any other string is taken as it is (``"cpu"``, ``"cuda:1"``)."""
-    if choice == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(choice)
 
 
 def default_cpu_threads(shares_cores: bool = False) -> int | None:
