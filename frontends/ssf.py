@@ -57,7 +57,15 @@ import numpy as np
 
 from flowslam.config import FlowOdometryConfig, PipelineConfig, SsfConfig
 from flowslam.frame import Frame
-from flowslam.frontends.ssf_stages import MotionRecoveryStage, NetworkStage, PairState, Stage, build_stages
+from flowslam.frontends.ssf_stages import (
+    MotionRecoveryStage,
+    NetworkStage,
+    PairState,
+    Stage,
+    build_stages,
+    restore_motion_models,
+    snapshot_motion_models,
+)
 from flowslam.interfaces import FrontendOutput
 
 
@@ -115,6 +123,8 @@ class SsfFrontend:
             state, laps = ahead.result()  # raises what those stages raised
             waited = {"ahead_wait_ms": 1e3 * (time.perf_counter() - start)}
             first = len(self._ahead_stages)
+        elif ahead is not None:
+            ahead.discard()  # another pair: as if it never ran
         for i in range(first, len(self.stages)):
             laps.update(_run_timed(self.stages[i:i + 1], state))
             if i == self._measured_after:  # the pose of scan k is final
@@ -146,7 +156,8 @@ class SsfFrontend:
 
                 self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ssf-ahead")
             state = self._pair_state(upcoming)
-            self._ahead = _StagesAhead(state, self._executor.submit(_run_timed, self._ahead_stages, state))
+            saved = snapshot_motion_models(self._ahead_stages)
+            self._ahead = _StagesAhead(state, self._executor.submit(_run_timed, self._ahead_stages, state), saved)
 
 
 def _run_timed(stages: list[Stage], state: PairState) -> dict[str, float]:
@@ -162,8 +173,10 @@ def _run_timed(stages: list[Stage], state: PairState) -> dict[str, float]:
 class _StagesAhead:
     """The first stages of a pair, run in the background (``SsfFrontend._advance``)."""
 
-    def __init__(self, state: PairState, future):
+    def __init__(self, state: PairState, future, motion_models: list):
         self.state, self.future = state, future
+        self.motion_models = motion_models
+        """The stages' predictor states before they ran (``snapshot_motion_models``)."""
 
     def serves(self, state: PairState) -> bool:
         """Whether ``state`` has exactly these inputs: the same scan objects and poses."""
@@ -176,6 +189,11 @@ class _StagesAhead:
     def result(self) -> tuple[PairState, dict[str, float]]:
         """The state those stages filled and their wall times (ms)."""
         return self.state, self.future.result()
+
+    def discard(self) -> None:
+        """Wait for the stages to end, drop what they found and put their predictors back."""
+        self.future.exception()  # waits; an error of a pair that is not run is no error
+        restore_motion_models(self.motion_models)
 
 
 def make_frontend(config: PipelineConfig) -> SsfFrontend:

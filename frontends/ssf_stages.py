@@ -316,7 +316,7 @@ class MotionRecoveryStage:
         if self._better(after, before, trial.estimate.fallback, state.estimate.fallback):
             state.adopt(trial)
             return dict(record, outcome="recovered")
-        self._restore_motion_models(first_state)
+        restore_motion_models(first_state)
         return dict(record, outcome="kept")
 
     def _better(self, after: float, before: float, after_fell_back: bool, before_fell_back: bool) -> bool:
@@ -335,14 +335,19 @@ class MotionRecoveryStage:
 
     def _motion_models(self) -> list:
         """The constant-velocity predictors of the redo stages and ``flow_to_pose``, with their state."""
-        stages = [*self.redo, self.flow_to_pose]
-        models = [s.flow_to_pose.predictor for s in stages if hasattr(s, "flow_to_pose")]
-        return [(m, m.snapshot()) for m in models]
+        return snapshot_motion_models([*self.redo, self.flow_to_pose])
 
-    @staticmethod
-    def _restore_motion_models(saved: list) -> None:
-        for model, snapshot in saved:
-            model.restore(snapshot)
+
+def snapshot_motion_models(stages: list[Stage]) -> list:
+    """(predictor, state) of every stage's ``FlowToPose`` constant-velocity predictor: what a
+    stage carries from pair to pair, to put back with :func:`restore_motion_models`."""
+    models = [s.flow_to_pose.predictor for s in stages if hasattr(s, "flow_to_pose")]
+    return [(m, m.snapshot()) for m in models]
+
+
+def restore_motion_models(saved: list) -> None:
+    for model, snapshot in saved:
+        model.restore(snapshot)
 
 
 class ObjectsStage:
