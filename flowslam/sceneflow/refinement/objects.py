@@ -320,9 +320,13 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
 
 def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], surface: ScanSurface,
                     c: ObjectRefinementConfig) -> np.ndarray:
-    """(M,3) landing of each point of ``p`` (frame k): its ego landing ``ego`` when that puts
-    it strictly nearer to scan k's surface than every object motion does, else the landing
-    of the nearest object motion (the first when none lands within ``score_distance_m``)."""
+    """(M,3) landing of each point of ``p`` (frame k): the landing of the object motion that
+    puts it nearest to scan k's surface (the first when none lands within
+    ``score_distance_m``), unless that leaves it off the surface (no scan point within
+    ``score_plane_m``) while its ego landing ``ego`` is strictly nearer: then the ego
+    landing. Points the object's motion explains keep it (an object is rigid: the faces a
+    car slides along explain its ego landings too, and must not split it); the others are
+    the static false positives merged into the object."""
     if not motions:
         return ego
     landings = np.stack([transform_points(M, p) for M in motions])
@@ -331,4 +335,6 @@ def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], s
     best = np.argmin(dist, axis=0)
     rows = np.arange(len(p))
     d_ego = surface.tree.query(ego, distance_upper_bound=c.score_distance_m)[0]
-    return np.where((d_ego < dist[best, rows])[:, None], ego, landings[best, rows])
+    nearest = dist[best, rows]
+    take_ego = (d_ego < nearest) & ~(nearest <= c.score_plane_m)
+    return np.where(take_ego[:, None], ego, landings[best, rows])
