@@ -197,6 +197,16 @@ class MovingObjectsLog:
             log.warning("moving objects: %d row(s) without a pose left out", missing)
         return out
 
+    def tracks(self, poses: Mapping[int, np.ndarray] | np.ndarray, indices: Sequence[int] | None = None
+               ) -> dict[int, np.ndarray]:
+        """Track id -> (M,3) world centroids (m) of its objects in scan order, via ``poses``
+        (as :meth:`rows`); untracked objects are left out."""
+        out: dict[int, list] = {}
+        for r in self.rows(poses, indices):
+            if r[11] >= 0:
+                out.setdefault(r[11], []).append(r[4:7])
+        return {track: np.array(centres) for track, centres in out.items()}
+
     def write_csv(
         self,
         path: str | Path,

@@ -14,11 +14,15 @@ def plot_top_view(
     title: str = "",
     loops: list[tuple[int, int]] = (),
     odometry: np.ndarray | None = None,
+    tracks: dict[int, np.ndarray] | None = None,
 ) -> Path:
     """Write an x-y top view of ``estimate`` (K,4,4) and optionally ``ground_truth``.
 
     ``loops`` are (i, j) positions *within* ``estimate`` joined by a red line
     (accepted loop closures); ``odometry`` (K,4,4) is drawn thin for comparison.
+
+    ``tracks``: moving objects, track id -> (M,3) centroids in the estimate's world frame
+    (m), drawn as dotted lines coloured by id (20 colours, cycling).
 
     Both are ``T_world_sensor`` stacks. The estimate is drawn in the GT's world
     frame by anchoring its first pose on the GT's first pose (no other
@@ -44,6 +48,11 @@ def plot_top_view(
     for n, (i, j) in enumerate(loops):
         ax.plot(est[[i, j], 0, 3], est[[i, j], 1, 3], "-", color="tab:red", lw=1.0,
                 label=f"loop closures ({len(loops)})" if n == 0 else None)
+    colours = plt.get_cmap("tab20")
+    for n, (track_id, centres) in enumerate(sorted((tracks or {}).items())):
+        xy = (np.asarray(centres) @ anchor[:3, :3].T + anchor[:3, 3])[:, :2]
+        ax.plot(xy[:, 0], xy[:, 1], ".-", color=colours(track_id % 20), lw=0.8, ms=3,
+                label=f"moving objects ({len(tracks)} tracks)" if n == 0 else None)
     ax.plot(est[:1, 0, 3], est[:1, 1, 3], "o", color="tab:green", label="start")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")

@@ -17,7 +17,7 @@ the trajectory of the frames it processed):
 - ``run.json``: what happened (frames, speed, error if any) and ``files``: each file's
   format and frame; written last, so it never claims a file that is not on disk
   (``flowslam.slam.Slam.save``).
-- ``trajectory_topview.png``: estimate vs GT, seen from above.
+- ``trajectory_topview.png``: estimate vs GT, seen from above, with the moving objects' tracks.
 - ``static_map.ply``, ``static_map.pcd``: the map (world frame, m; float32 x y z intensity,
   voxel means) from the final poses, without the points the frontend marked dynamic
   (written by ``flowslam.slam``, Open3D tensor IO).
@@ -175,13 +175,17 @@ def write_results(
     gt: Trajectory | None,
     metrics: dict | None,
     T_cam0_sensor: np.ndarray | None = None,
+    tracks: dict[int, np.ndarray] | None = None,
 ) -> list[Path]:
     """Write the outputs of a run (see module doc) except ``run.json``, which the caller
     writes last so that it never claims more than is on disk; returns the files
     written. Trajectories first (the most valuable), the top view (when
     ``config.output.plot``) last. Every file goes through :func:`write_atomic`.
     ``T_cam0_sensor``: KITTI's ``Tr`` (4x4, sensor into camera 0) for KITTI input, which
-    puts ``trajectory_kitti.txt`` and ``gt_kitti.txt`` in KITTI's camera-0 convention."""
+    puts ``trajectory_kitti.txt`` and ``gt_kitti.txt`` in KITTI's camera-0 convention.
+    ``tracks``: moving-object tracks to draw on the top view, track id -> (M,3) centroids
+    in the world frame of the estimate (m), e.g. ``MovingObjectsLog.tracks``.
+    """
     written: list[Path] = []
 
     def out(name: str, write: Callable[[Path], object]) -> None:
@@ -200,11 +204,12 @@ def write_results(
     if metrics is not None:
         written.append(write_json(run_dir / "metrics.json", metrics))
     if config.output.plot and len(result.indices) > 1:
-        written.append(_write_top_view(run_dir / "trajectory_topview.png", result, config, gt))
+        written.append(_write_top_view(run_dir / "trajectory_topview.png", result, config, gt, tracks))
     return written
 
 
-def _write_top_view(path: Path, result: RunResult, config: PipelineConfig, gt: Trajectory | None) -> Path:
+def _write_top_view(path: Path, result: RunResult, config: PipelineConfig, gt: Trajectory | None,
+                    tracks: dict[int, np.ndarray] | None = None) -> Path:
     from flowslam.plotting import plot_top_view
 
     position = {index: k for k, index in enumerate(result.indices)}
@@ -212,5 +217,5 @@ def _write_top_view(path: Path, result: RunResult, config: PipelineConfig, gt: T
     odometry = geometry.compose_relatives(result.odometry)
     return write_atomic(path, lambda tmp: plot_top_view(
         tmp, result.poses, None if gt is None else gt.poses,
-        title=f"{config.frontend} + {config.backend}", loops=loops, odometry=odometry,
+        title=f"{config.frontend} + {config.backend}", loops=loops, odometry=odometry, tracks=tracks,
     ))

@@ -283,7 +283,10 @@ class Slam:
 
         results_dir = make_results_folder(results_dir)
         result = self.result()
-        written = write_results(results_dir, result, self.config, gt, metrics, T_cam0_sensor)
+        tracks = None
+        if self.objects is not None and result.indices:
+            tracks = self.objects.tracks(result.poses, result.indices)
+        written = write_results(results_dir, result, self.config, gt, metrics, T_cam0_sensor, tracks)
         if result.indices and getattr(self.backend, "exports_graph", False):
             written.append(write_atomic(results_dir / "graph.g2o", self.backend.write_g2o))
         if result.indices and self.map is not None and self.map.n_points:

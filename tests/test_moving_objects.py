@@ -119,3 +119,15 @@ def test_log_with_gt_frontend_on_a_sequence(tmp_path: Path):
     assert [r[0] for r in rows] == [0, 1, 2] and {r[2] for r in rows} == {7}
     for r in rows:  # the car drives [10, 0.5, 0] m/s in the world
         np.testing.assert_allclose(r[7:10], [10.0, 0.5, 0.0], atol=1e-6)
+    # one object, one track across the scans; its world centroids drawn on the top view
+    assert [r[11] for r in rows] == [0, 0, 0] and [r[12] for r in rows] == [0, 1, 2]
+    tracks = log.tracks(poses)
+    assert list(tracks) == [0]
+    np.testing.assert_allclose(tracks[0], [r[4:7] for r in rows])
+    steps = np.diff(tracks[0], axis=0)  # 10.5 m/s x 0.1 s apart in the world
+    np.testing.assert_allclose(steps, np.tile([1.0, 0.05, 0.0], (2, 1)), atol=1e-6)
+
+    from flowslam.plotting import plot_top_view
+
+    png = plot_top_view(tmp_path / "top.png", np.asarray(poses), tracks=tracks)
+    assert png.stat().st_size > 10_000

@@ -17,4 +17,4 @@ class OutputConfig(StrictModel):
     map_points_per_frame: int = Field(10000, ge=1)
     """Points kept per scan for the map (memory: ~80 kB per scan)."""
     plot: bool = True
-    """Write ``trajectory_topview.png`` (estimate vs GT from above, loops in red)."""
+    """Write ``trajectory_topview.png`` (estimate vs GT from above, loops in red, object tracks)."""
