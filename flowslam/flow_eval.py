@@ -59,15 +59,18 @@ class FlowEvaluation:
     ``ego-gt``, and its ego-motion error (translation m, rotation deg per step).
 
     ``gt_poses`` are the dataset's ``T_world_sensor`` by dataset index; ``scored``, when
-    given, the dataset indices of the newest scans of the only pairs to score.
+    given, the dataset indices of the newest scans of the only pairs to score; ``flow``:
+    False keeps only the ego-motion error and the moving-object metrics (``objects``), not
+    the per-point flow arrays the flow metrics are computed from (long runs: memory).
     """
 
-    def __init__(self, gt_poses: np.ndarray, scored: set[int] | None = None):
+    def __init__(self, gt_poses: np.ndarray, scored: set[int] | None = None, flow: bool = True):
         from flowslam.moving_objects import MovingObjectsLog
         from flowslam.sceneflow.object_metrics import ObjectScores
 
         self.gt_poses = gt_poses
         self.scored = scored
+        self.flow = flow
         self.method, self.reference = _Accumulator(), _Accumulator()
         self.objects = ObjectScores()
         self._tracks = MovingObjectsLog()  # the method's objects with track ids, as ``flowslam run`` logs them
@@ -87,8 +90,9 @@ class FlowEvaluation:
         classes, ground = frame_labels(prev)
         dynamic = np.zeros(len(prev.points), bool) if prev.gt_dynamic is None else prev.gt_dynamic
         common = dict(gt=prev.gt_flow, dynamic=dynamic, classes=classes, ground=ground, points=prev.points, ego=ego)
-        self.reference.add(pred=ego, pred_dyn=np.zeros(len(ego), bool), **common)
-        if out.flow is not None:
+        if self.flow:
+            self.reference.add(pred=ego, pred_dyn=np.zeros(len(ego), bool), **common)
+        if out.flow is not None and self.flow:
             pred_dyn = np.zeros(len(ego), bool) if out.static_mask is None else ~np.asarray(out.static_mask, bool)
             self.method.add(pred=out.flow, pred_dyn=pred_dyn, **common)
         if out.T_prev_curr is not None:

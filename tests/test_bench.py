@@ -74,6 +74,11 @@ def test_bench_writes_everything_resumes_after_a_kill_and_matches_eval(tiny, tmp
         assert float(row["ms_per_frame"]) > 0 and float(row["peak_rss_mb"]) > 50
     bench = json.loads((bench_dir / "bench.json").read_text())
     assert bench["frontends"] == ["gt", "kiss-icp"] and "flowslam_version" in bench["info"]
+    # moving objects: the GT frontend finds every GT object; KISS-ICP gives no instances
+    gt_objects = bench["cells"]["tiny/gt"]["objects"]
+    assert gt_objects["recall"] == 1.0 and gt_objects["precision"] == 1.0 and gt_objects["gt_objects"] > 0
+    assert bench["cells"]["tiny/kiss-icp"]["objects"] is None
+    assert "Moving objects" in (bench_dir / "table1.md").read_text()
     assert (bench_dir / "runtime_vs_rpe.png").read_bytes()[:4] == b"\x89PNG"
 
 

@@ -52,6 +52,10 @@ def _entry(cell: dict | None, variant: str) -> dict:
         frames=row["frames"],
         run_dir=row["run_dir"],
     )
+    objects = cell.get("objects") or {}  # the frontend's, the same for both variants
+    out.update(obj_recall=objects.get("recall"), obj_precision=objects.get("precision"),
+               obj_speed_error_mps=objects.get("median_speed_error_mps"),
+               obj_id_switches_per_100=objects.get("id_switches_per_100_pairs"))
     return out
 
 
@@ -97,6 +101,7 @@ def table1_markdown(rows: list[dict], sequences) -> str:
                 cells += [_f(r.get("ape_m")), _f(r.get("drift_t_percent"), 2), _f(r.get("ms_per_frame"), 0),
                           _f(r.get("fps"), 1), _f(r.get("peak_rss_mb"), 0), str(r.get("loops", "-"))]
             lines.append(f"| {variant} | {fe} | " + " | ".join(cells) + " |")
+    lines += _objects_table(by, frontends, sequences)
     notes = sorted({f"{r['frontend']} on {r['sequence']}: {r['error']}" for r in rows if r.get("error")})
     if notes:
         lines += ["", "Not run or stopped early:", ""] + [f"- {n}" for n in notes]
@@ -104,6 +109,21 @@ def table1_markdown(rows: list[dict], sequences) -> str:
               "segmentation; ◐ predicted flow, GT segmentation; GT: ground-truth flow (with or without GT "
               "segmentation). xyz in m (SSE m^2), rpy in deg (SSE deg^2)."]
     return "\n".join(lines) + "\n"
+
+
+def _objects_table(by: dict, frontends: list[str], sequences) -> list[str]:
+    """Moving objects per frontend and sequence (a-loam pass; none when no cell has them)."""
+    keys = (("obj_recall", "recall"), ("obj_precision", "precision"), ("obj_speed_error_mps", "speed err m/s"),
+            ("obj_id_switches_per_100", "ID sw /100"))
+    if not any(by["a-loam", fe, seq].get("obj_recall") is not None for fe in frontends for seq in sequences):
+        return []
+    head = ["Method"] + [f"{label} {seq}" for seq in sequences for _, label in keys]
+    lines = ["", "Moving objects (`flowslam flow-eval`'s definitions):", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for fe in frontends:
+        cells = [_f(by["a-loam", fe, seq].get(key), 2) for seq in sequences for key, _ in keys]
+        lines.append(f"| {fe} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def write_report(bench_dir: Path, sequences: dict, frontends: list[str], info: dict) -> dict:

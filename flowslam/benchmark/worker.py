@@ -10,7 +10,9 @@ Timing: ``ms_per_frame`` is a median over the scans (the first scans pay for laz
 imports). For ``a-loam`` it is the run's own wall time per scan (reading, frontend,
 iSAM2); for ``s-loam`` the frontend pass plus the replay run's time on the same scan
 (reading again, iSAM2, loop detection). ``peak_rss_mb`` is this process's peak resident memory
-(both variants; Linux ``ru_maxrss``).
+(both variants; Linux ``ru_maxrss``). ``objects``: the moving-object metrics of the
+frontend's outputs in the ``a-loam`` pass (``flowslam.sceneflow.object_metrics``; None
+without GT instances or without instances from the frontend).
 
     python -m flowslam.benchmark.worker --sequence SEQ --frontend NAME --out CELL --config CONFIG.yaml
 """
@@ -52,6 +54,17 @@ def _row(outcome, per_frame: np.ndarray) -> dict:
     }
 
 
+def _object_scorer(sequence: Path, config: PipelineConfig):
+    """A moving-object scorer of the frontend's outputs (``flowslam.flow_eval.FlowEvaluation``
+    without the per-point flow arrays) when the sequence has GT poses, else None. Its
+    ``objects`` count only where the GT has instances and the frontend gives them."""
+    from flowslam.datasets import open_dataset
+    from flowslam.flow_eval import FlowEvaluation
+
+    gt_poses = open_dataset(sequence, config.dataset).gt_poses
+    return None if gt_poses is None else FlowEvaluation(np.asarray(gt_poses), flow=False)
+
+
 def run_cell(sequence: Path, frontend: str, cell_dir: Path, config: PipelineConfig, progress=None) -> dict:
     """Run one cell (module doc); returns what ``cell.json`` holds. ``progress(label)``
     may return ``(on_start, on_frame)`` callbacks for a bar."""
@@ -65,8 +78,10 @@ def run_cell(sequence: Path, frontend: str, cell_dir: Path, config: PipelineConf
     cfg = _variant_config(config, frontend, "a-loam")
     recorder = RecordingFrontend(make_frontend(frontend, cfg), per_point=cfg.mapping.enabled)
     on_start, on_frame = progress(f"{frontend} a-loam") if progress else (None, None)
+    objects = _object_scorer(sequence, cfg)
     outcome = run_sequence(sequence, cfg, frontend=recorder, run_dir=cell_dir / "a-loam",
-                           on_start=on_start, on_frame=on_frame)
+                           on_start=on_start, on_frame=on_frame,
+                           step_listeners=[lambda step: objects.on_output(step.frame, step.output)] if objects else [])
     frontend_pass = np.asarray(outcome.result.seconds_per_frame)
     rows["a-loam"] = _row(outcome, frontend_pass)
     if outcome.result.indices:
@@ -81,6 +96,7 @@ def run_cell(sequence: Path, frontend: str, cell_dir: Path, config: PipelineConf
         "sequence": str(sequence),
         "frontend": frontend,
         "rows": rows,
+        "objects": objects.objects.result() if objects and objects.objects.pairs else None,
         "wall_seconds": time.perf_counter() - start,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
     }
