@@ -27,6 +27,8 @@ class RecordingFrontend:
 
     def __init__(self, inner, per_point: bool = False):
         self.inner, self.name, self.per_point = inner, inner.name, per_point
+        if hasattr(inner, "upcoming"):  # the run loop's read-ahead reaches the inner frontend (ssf's two threads)
+            self.upcoming = inner.upcoming
         self.records: dict[int, FrontendOutput] = {}
         self.points_from_previous: set[int] = set()
         """Steps whose ``points`` are the previous frame's (not stored; see module doc)."""

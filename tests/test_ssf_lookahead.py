@@ -87,3 +87,19 @@ def test_the_pair_run_ahead_serves_only_a_pair_with_exactly_its_inputs(kitti_ext
     assert "ahead_wait_ms" not in out_computed.stats
     assert np.abs(out_computed.T_prev_curr - out_served.T_prev_curr).max() < 1e-9
     assert np.mean(out_computed.static_mask == out_served.static_mask) > 0.9999
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_a_recording_frontend_keeps_the_two_threads(kitti_extract):
+    """``flowslam demo`` and ``flowslam bench`` record the frontend to replay it into the
+    other backend: the recorder hands the read-ahead on, and records the same measurements."""
+    from flowslam.replay import RecordingFrontend
+
+    config = PipelineConfig(frontend="ssf", backend="isam2", ssf={"refine": {"enabled": False}})
+    recorder = RecordingFrontend(make_frontend("ssf", config))
+    result = run_pipeline(open_dataset(kitti_extract), recorder, make_backend("isam2", config), range(4))
+    assert result.error is None and all(_ran_ahead(result))
+    assert not hasattr(RecordingFrontend(make_frontend("kiss-icp", config)), "upcoming")
+    plain, _ = _run(kitti_extract, {"refine": {"enabled": False}}, lookahead=True)
+    for k in range(1, 4):
+        assert np.array_equal(recorder.records[k].T_prev_curr, plain.odometry[k - 1])
