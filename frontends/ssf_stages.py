@@ -390,7 +390,8 @@ class ObjectsStage:
         if evidence.enabled:
             movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground)
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
-                                 state.refined.target_tree, movers, seen, surface)
+                                 state.refined.target_tree, movers, seen, surface,
+                                 ground.above(evidence.ground_clearance_m))
         accepted = np.array([o["accepted"] for o in objects.objects] + [False])  # [-1] -> False
         state.flow, state.static = objects.flow, ~objects.dynamic
         state.instance = np.where(accepted[objects.instance], objects.instance, -1)

@@ -84,3 +84,24 @@ def test_a_moving_car_becomes_one_dynamic_instance_and_the_parked_car_stays_stat
     # and the object's record holds its speed (SSF-PAN Eq. 7 on its own motion: 10 m/s)
     record = result.objects[int(ids[0])]
     assert record["accepted"] and record["speed_mps"] == pytest.approx(10.0, abs=0.2)
+
+
+def test_a_partly_flagged_car_grows_to_its_whole_body(pair):
+    """The "network" flags only the front half of the moving car (x > 10 m in the world): the
+    object's ICP finds the car's motion from that half, and the rest of the car's
+    above-ground component, which that motion explains, joins it (``grow_max_extent_m``);
+    without growth the rear half stays static. The parked car and the scene stay static."""
+    prev, curr, labels, T_ego = pair
+    moving = labels == 1
+    front = moving & (prev[:, 0] > 10.0)
+    flow = geometry.rigid_flow(T_ego, prev)
+    flow[front] += [0.8, 0.05, 0.0]
+    above = prev[:, 2] > 0.1  # the road is at z = -0.01
+    common = (prev, flow, front, curr, T_ego, DT)
+    grown = refine_objects(*common, ObjectRefinementConfig(), above_ground=above)
+    plain = refine_objects(*common, ObjectRefinementConfig(grow_max_extent_m=0.0), above_ground=above)
+    assert plain.dynamic[moving].mean() < 0.7  # the rear half is left out
+    assert grown.dynamic[moving].mean() > 0.95
+    assert not grown.dynamic[labels != 1].any()
+    ids = grown.instance[moving & grown.dynamic]
+    assert len(np.unique(ids)) == 1 and ids[0] >= 0 and grown.objects[int(ids[0])]["grown_points"] > 0

@@ -146,6 +146,12 @@ class ObjectRefinementConfig(StrictModel):
     """Per-object ICP stages, coarse to fine: largest correspondence distance per stage."""
     max_iterations: int = Field(15, ge=1)
     """ICP iterations per stage."""
+    grow_max_extent_m: float = Field(8.0, ge=0)
+    """After its ICP, a moving object takes the rest of the above-ground BEV components
+    (``cluster_cell_m``, at most this BEV diagonal, m) its dynamic points lie in, when its
+    motion puts at least ``min_fitness`` of the component on scan k's surface: the
+    points its motion explains join it (the network often flags only part of a vehicle,
+    and a vehicle sliding along itself leaves the surface only at its ends). 0: never."""
     max_icp_points: int = Field(1000, ge=10)
     """Points of an object its ICP registers and scores: an evenly strided subset of a
     bigger object (its static score and every point's landing use all its points). Merged

@@ -166,6 +166,7 @@ def refine_objects(
     movers: np.ndarray | None = None,
     seen_through: np.ndarray | None = None,
     surface: ScanSurface | None = None,
+    above_ground: np.ndarray | None = None,
 ) -> ObjectRefinement:
     """Refine the flow of the candidate moving points of ``source`` (scan k-1) against
     ``target`` (scan k) given the ego motion ``T_ego`` = ``T_{k,k-1}`` (module doc).
@@ -198,14 +199,23 @@ def refine_objects(
     settled = np.zeros(len(source), dtype=bool)
     instance = np.full(len(source), -1, dtype=np.int64)
     clusters = _clusters(source, cand, c)
+    grown = []  # (object, its motion, its dynamic points) to grow
     for idx, static_score in zip(clusters, _static_scores(source, clusters, T_ego, surface, c)):
         instance[idx] = len(objects)
         record = _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
                                 static_score, c)
+        motion = record.pop("motion", None)
         objects.append(record)
         if "result" in record:
             landing, moving = record.pop("result")
             flow[idx], dynamic[idx], settled[idx] = landing - source[idx], moving, True
+            if motion is not None and moving.any():
+                grown.append((len(objects) - 1, motion, idx[moving]))
+    if grown and above_ground is not None and c.grow_max_extent_m > 0:
+        solid = np.flatnonzero(np.asarray(above_ground, bool) & near)
+        for i, extra, landing, moving in _grow(source, solid, grown, settled, T_ego, surface, interval, c):
+            flow[extra], dynamic[extra], settled[extra], instance[extra] = landing - source[extra], moving, True, i
+            objects[i]["grown_points"] = int(len(extra))
     # the rest of the network's dynamic points: static if the ego motion lands them on a surface
     rest = np.flatnonzero(dynamic & ~settled)
     on_surface = np.zeros(0, dtype=bool)
@@ -228,6 +238,44 @@ def refine_objects(
 def object_target_range(c: ObjectRefinementConfig) -> float:
     """Horizontal range (m) of the target points the objects are registered to."""
     return c.max_range_m + c.margin_m + 5.0
+
+
+def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarray, T_ego: np.ndarray,
+          surface: ScanSurface, interval: float, c: ObjectRefinementConfig):
+    """For each moving object ``(index, motion, its dynamic points)``: the unsettled points of
+    the small BEV components of ``solid`` (above-ground point indices) it lies in, when its
+    motion explains at least ``min_fitness`` of such a component; yields ``(index, points,
+    their landings (frame k; the ego landing where not moving), moving)`` for the points
+    its motion explains."""
+    if solid.size == 0:
+        return
+    labels = bev_clusters(source[solid], c.cluster_cell_m)
+    n = int(labels.max()) + 1
+    lo, hi = np.full((n, 2), np.inf), np.full((n, 2), -np.inf)
+    np.minimum.at(lo, labels, source[solid, :2])
+    np.maximum.at(hi, labels, source[solid, :2])
+    small = np.hypot(*(hi - lo).T) <= c.grow_max_extent_m
+    label_of = np.full(len(source), -1)
+    label_of[solid] = labels
+    taken = settled.copy()
+    for i, motion, core in grown:
+        comps = np.unique(label_of[core])
+        comps = comps[(comps >= 0)]
+        comps = comps[small[comps]]
+        for comp in comps:
+            members = solid[labels == comp]
+            landing = transform_points(motion, source[members])
+            explained = _plane_distances(landing, surface, c) < c.score_plane_m
+            if explained.mean() < c.min_fitness:
+                continue
+            extra = explained & ~taken[members]
+            if not extra.any():
+                continue
+            pts = members[extra]
+            ego = transform_points(T_ego, source[pts])
+            moving = np.linalg.norm(landing[extra] - ego, axis=1) > c.dynamic_speed_mps * interval
+            taken[pts] = True
+            yield i, pts, np.where(moving[:, None], landing[extra], ego), moving  # static: the ego landing
 
 
 def _clusters(source: np.ndarray, cand: np.ndarray, c: ObjectRefinementConfig) -> list[np.ndarray]:
@@ -310,6 +358,8 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
             record["accepted"] = True
             motions.append(Tm)
     if record["accepted"]:
+        if motions:
+            record["motion"] = motions[0]
         landing = _choose_landing(p, ego, motions, surface, c)
         departure = np.linalg.norm(landing - ego, axis=1)
         moving = departure > c.dynamic_speed_mps * interval
