@@ -98,7 +98,7 @@ def test_a_partly_flagged_car_grows_to_its_whole_body(pair):
     flow[front] += [0.8, 0.05, 0.0]
     above = prev[:, 2] > 0.1  # the road is at z = -0.01
     common = (prev, flow, front, curr, T_ego, DT)
-    grown = refine_objects(*common, ObjectRefinementConfig(), above_ground=above)
+    grown = refine_objects(*common, ObjectRefinementConfig(grow_max_extent_m=8.0), above_ground=above)
     plain = refine_objects(*common, ObjectRefinementConfig(grow_max_extent_m=0.0), above_ground=above)
     assert plain.dynamic[moving].mean() < 0.7  # the rear half is left out
     assert grown.dynamic[moving].mean() > 0.95
