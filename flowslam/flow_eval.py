@@ -101,13 +101,13 @@ class FlowEvaluation:
             self.ego_r.append(float(np.degrees(geometry.rotation_angle(E))))
         self.dts.append(frame.timestamp - prev.timestamp)
         if prev.gt_instance is not None and out.instance_ids is not None and out.static_mask is not None:
-            self._score_objects(prev, out, T_curr_prev, self._tracks.objects[logged:])
+            self._score_objects(prev, out, T_curr_prev, self.dts[-1], self._tracks.objects[logged:])
 
-    def _score_objects(self, prev: Frame, out: FrontendOutput, T_curr_prev: np.ndarray, logged: list) -> None:
-        """Instance metrics of the pair (:mod:`flowslam.sceneflow.object_metrics`)."""
+    def _score_objects(self, prev: Frame, out: FrontendOutput, T_curr_prev: np.ndarray, dt: float,
+                       logged: list) -> None:
+        """Instance metrics of the pair (:mod:`flowslam.sceneflow.object_metrics`); ``dt`` (s)."""
         from flowslam.moving_objects import moving_objects
 
-        dt = float(self._prev.timestamp - prev.timestamp)
         gt_dynamic = np.asarray(prev.gt_dynamic, bool)
         gt = np.where(gt_dynamic, prev.gt_instance, -1)
         pred = np.where(np.asarray(out.static_mask, bool), -1, out.instance_ids)

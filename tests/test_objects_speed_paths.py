@@ -21,7 +21,7 @@ from flowslam.sceneflow.refinement.clusters import (
     plane_normals,
 )
 from flowslam.sceneflow.refinement.tracking import MoverPrior
-from flowslam.sceneflow.refinement.visibility import _bev_extent
+from flowslam.sceneflow.refinement.clusters import bev_extent
 
 
 def _street(seed: int = 0, n: int = 20000) -> np.ndarray:
@@ -141,6 +141,6 @@ def test_bev_extent_equals_ptp_per_label():
     rng = np.random.default_rng(10)
     xy = rng.uniform(-20, 20, (3000, 2))
     labels = rng.integers(0, 40, 3000)
-    got = _bev_extent(xy, labels, 40)
+    got = bev_extent(xy, labels, 40)
     expected = [np.hypot(*np.ptp(xy[labels == k], axis=0)) for k in range(40)]
     np.testing.assert_allclose(got, expected)

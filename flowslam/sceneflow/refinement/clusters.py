@@ -2,6 +2,7 @@
 of scan k that the objects stage shares between its sub-steps.
 
 - :func:`bev_clusters`: connected components of occupied bird's-eye-view cells;
+- :func:`bev_extent`: the BEV bounding-box diagonal of each labelled group of points;
 - :class:`LocalGround` / :func:`above_ground`: lowest point per BEV cell, and the points
   clearly above it;
 - :class:`ScanSurface`: one KD-tree over a scan (built once, on first use), an exact
@@ -23,6 +24,7 @@ __all__ = [
     "above_ground",
     "bev_cell_ids",
     "bev_clusters",
+    "bev_extent",
     "dense_grid_shape",
     "grid_occupancy",
     "grid_voxel_ids",
@@ -47,6 +49,15 @@ def bev_clusters(points: np.ndarray, cell: float) -> np.ndarray:
     grid[ij[:, 0], ij[:, 1]] = True
     labels, _ = ndimage.label(grid, structure=np.ones((3, 3), dtype=bool))
     return labels[ij[:, 0], ij[:, 1]] - 1
+
+
+def bev_extent(xy: np.ndarray, labels: np.ndarray, n_labels: int) -> np.ndarray:
+    """(n_labels,) diagonal (m) of each label's axis-aligned BEV bounding box (``np.ptp`` per label)."""
+    lo = np.full((n_labels, 2), np.inf)
+    hi = np.full((n_labels, 2), -np.inf)
+    np.minimum.at(lo, labels, xy)
+    np.maximum.at(hi, labels, xy)
+    return np.hypot(*(hi - lo).T)
 
 
 def bev_cell_ids(points: np.ndarray, cell: float) -> tuple[np.ndarray, tuple[int, int], np.ndarray]:

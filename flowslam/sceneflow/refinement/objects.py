@@ -45,7 +45,7 @@ import numpy as np
 
 from flowslam.geometry import rigid_flow, transform_points
 from flowslam.config.ssf import ObjectRefinementConfig
-from flowslam.sceneflow.refinement.clusters import ScanSurface, bev_clusters
+from flowslam.sceneflow.refinement.clusters import ScanSurface, bev_clusters, bev_extent
 
 __all__ = ["ObjectRefinement", "refine_objects"]
 
@@ -250,11 +250,7 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
     if solid.size == 0:
         return
     labels = bev_clusters(source[solid], c.cluster_cell_m)
-    n = int(labels.max()) + 1
-    lo, hi = np.full((n, 2), np.inf), np.full((n, 2), -np.inf)
-    np.minimum.at(lo, labels, source[solid, :2])
-    np.maximum.at(hi, labels, source[solid, :2])
-    small = np.hypot(*(hi - lo).T) <= c.grow_max_extent_m
+    small = bev_extent(source[solid, :2], labels, int(labels.max()) + 1) <= c.grow_max_extent_m
     label_of = np.full(len(source), -1)
     label_of[solid] = labels
     taken = settled.copy()

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from flowslam.config.ssf import MotionEvidenceConfig
 from flowslam.geometry import transform_points
-from flowslam.sceneflow.refinement.clusters import LocalGround, ScanSurface, above_ground, bev_clusters
+from flowslam.sceneflow.refinement.clusters import LocalGround, ScanSurface, above_ground, bev_clusters, bev_extent
 
 __all__ = ["RangeImage", "spherical", "geometric_movers"]
 
@@ -108,7 +108,7 @@ def geometric_movers(
     counts = np.bincount(labels)
     seeds = np.bincount(labels, weights=seen[near].astype(np.float64), minlength=len(counts))
     kept = (counts >= c.min_points) & (seeds >= c.min_seen_through)
-    kept[kept] = _bev_extent(source[near, :2], labels, len(counts))[kept] <= c.max_extent_m
+    kept[kept] = bev_extent(source[near, :2], labels, len(counts))[kept] <= c.max_extent_m
     movers[near[kept[labels]]] = True
     return movers, seen
 
@@ -119,12 +119,3 @@ def _above_ground(source: np.ndarray, idx: np.ndarray, c: MotionEvidenceConfig, 
     if ground is not None and ground.cell == c.ground_cell_m:
         return ground.above(c.ground_clearance_m)[idx]
     return above_ground(source[idx], c.ground_cell_m, c.ground_clearance_m)
-
-
-def _bev_extent(xy: np.ndarray, labels: np.ndarray, n_labels: int) -> np.ndarray:
-    """(n_labels,) diagonal (m) of each label's axis-aligned BEV bounding box (``np.ptp`` per label)."""
-    lo = np.full((n_labels, 2), np.inf)
-    hi = np.full((n_labels, 2), -np.inf)
-    np.minimum.at(lo, labels, xy)
-    np.maximum.at(hi, labels, xy)
-    return np.hypot(*(hi - lo).T)
