@@ -30,8 +30,15 @@ from a box-only one only where a motion puts them near the box's edge (target no
 there then see their neighbours outside the box too); no output changed on the KITTI
 and simulated rush-hour pairs replayed against the box-only version.
 
-Instance tracking, object velocities over time and the iterative flow/segmentation
-loop of SSF-PAN are a later step; this is the per-pair rigid refinement only.
+:func:`refine_objects_iteratively` repeats the refinement (SSF-PAN's flow <->
+segmentation loop, ``iterations``): each round clusters the points the previous round
+left dynamic (the static false positives it split off no longer pull on an object's
+ICP), starts each object's ICP from the flow the previous round gave it, and relabels,
+until a round changes at most ``converged_share`` of the labels of the points dynamic in
+either round, and the flow of those dynamic in both by at most ``converged_flow_m`` on
+average. The ego motion stays fixed: it is the odometry measurement,
+final before this stage runs. Instance tracking over time lives in
+:mod:`flowslam.object_tracks`.
 
 Frames: source points in sensor frame ``k-1``, target points and ``p + flow`` in sensor
 frame ``k``; metres, seconds.
@@ -47,7 +54,7 @@ from flowslam.geometry import rigid_flow, transform_points
 from flowslam.config.ssf import ObjectRefinementConfig
 from flowslam.sceneflow.refinement.clusters import ScanSurface, bev_clusters, bev_extent
 
-__all__ = ["ObjectRefinement", "refine_objects"]
+__all__ = ["ObjectRefinement", "refine_objects", "refine_objects_iteratively"]
 
 
 
@@ -201,16 +208,21 @@ def refine_objects(
     clusters = _clusters(source, cand, c)
     grown = []  # (object, its motion, its dynamic points) to grow
     for idx, static_score in zip(clusters, _static_scores(source, clusters, T_ego, surface, c)):
-        instance[idx] = len(objects)
+        own = instance[idx] = len(objects)
         record = _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
                                 static_score, c)
         motion = record.pop("motion", None)
         objects.append(record)
         if "result" in record:
-            landing, moving = record.pop("result")
+            landing, moving, parts = record.pop("result")
             flow[idx], dynamic[idx], settled[idx] = landing - source[idx], moving, True
+            speeds = record.pop("part_speeds_mps")
+            for part in range(1, len(speeds)):  # part 0 keeps the object's own entry
+                instance[idx[parts == part]] = len(objects)
+                objects.append({"points": int(np.count_nonzero(parts == part)), "part_of": own,
+                                "accepted": True, "speed_mps": speeds[part]})
             if motion is not None and moving.any():
-                grown.append((len(objects) - 1, motion, idx[moving]))
+                grown.append((own, motion, idx[moving]))
     if grown and above_ground is not None and c.grow_max_extent_m > 0:
         solid = np.flatnonzero(np.asarray(above_ground, bool) & near)
         for i, extra, landing, moving in _grow(source, solid, grown, settled, T_ego, surface, interval, c):
@@ -233,6 +245,51 @@ def refine_objects(
         "relabelled_static": int(on_surface.sum()),
     }
     return ObjectRefinement(flow, dynamic, instance, objects, stats)
+
+
+def refine_objects_iteratively(
+    source: np.ndarray,
+    flow: np.ndarray,
+    dynamic: np.ndarray,
+    target: np.ndarray,
+    T_ego: np.ndarray,
+    dt: float,
+    config: ObjectRefinementConfig | None = None,
+    target_tree=None,
+    movers: np.ndarray | None = None,
+    seen_through: np.ndarray | None = None,
+    surface: ScanSurface | None = None,
+    above_ground: np.ndarray | None = None,
+) -> ObjectRefinement:
+    """:func:`refine_objects` (same arguments) repeated as SSF-PAN's flow <-> segmentation
+    loop (module doc), at most ``iterations`` rounds. Round i+1 takes round i's flow and
+    dynamic labels as its input; the geometric movers it keeps are those round i left
+    dynamic. The result is the last round's, with ``stats["iterations"]`` (rounds run) and
+    ``stats["round_changes"]`` (labels changed by each round after the first)."""
+    from scipy.spatial import cKDTree
+
+    c = config or ObjectRefinementConfig()
+    if target_tree is None:
+        target_tree = cKDTree(target)
+    if surface is None:
+        surface = ScanSurface(target, object_target_range(c))
+    movers = np.zeros(len(source), dtype=bool) if movers is None else np.asarray(movers, dtype=bool)
+    common = dict(target_tree=target_tree, seen_through=seen_through, surface=surface, above_ground=above_ground)
+    result = refine_objects(source, flow, dynamic, target, T_ego, dt, c, movers=movers, **common)
+    changes = []
+    while len(changes) + 1 < c.iterations:
+        nxt = refine_objects(source, result.flow, result.dynamic, target, T_ego, dt, c,
+                             movers=movers & result.dynamic, **common)
+        relabelled = int(np.count_nonzero(nxt.dynamic != result.dynamic))
+        either = int(np.count_nonzero(nxt.dynamic | result.dynamic))
+        both = nxt.dynamic & result.dynamic  # a relabelled point counts in ``relabelled`` only
+        moved = float(np.linalg.norm(nxt.flow[both] - result.flow[both], axis=1).mean()) if both.any() else 0.0
+        changes.append(relabelled)
+        result = nxt
+        if relabelled <= c.converged_share * either and moved <= c.converged_flow_m:
+            break
+    result.stats.update(iterations=len(changes) + 1, round_changes=changes)
+    return result
 
 
 def object_target_range(c: ObjectRefinementConfig) -> float:
@@ -321,8 +378,9 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     ego = transform_points(T_ego, p)  # where the points land if they are static
     record = {"points": int(len(p)), "static_fitness": static_fitness, "static_rmse_m": static_rmse,
               "accepted": False}
-    if static_fitness >= c.static_fitness_accept:  # static whatever the ICP finds: skip it
-        record.update(accepted=True, speed_mps=0.0, result=(ego, np.zeros(len(p), dtype=bool)))
+    if static_fitness >= c.static_fitness_accept and static_rmse <= c.static_accept_rmse_m:  # static: skip the ICP
+        record.update(accepted=True, speed_mps=0.0, part_speeds_mps=[0.0],
+                      result=(ego, np.zeros(len(p), dtype=bool), np.full(len(p), -1, dtype=np.int64)))
         return record
     R = T_ego[:3, :3]
     T0 = np.eye(4)
@@ -356,17 +414,43 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     if record["accepted"]:
         if motions:
             record["motion"] = motions[0]
-        landing = _choose_landing(p, ego, motions, surface, c)
+        landing, which = _choose_landing(p, ego, motions, surface, c)
         departure = np.linalg.norm(landing - ego, axis=1)
         moving = departure > c.dynamic_speed_mps * interval
-        record["speed_mps"] = float(np.median(departure[moving]) / interval) if moving.any() else 0.0
-        record["result"] = (np.where(moving[:, None], landing, ego), moving)
+        parts = _parts(p, which, moving, c)
+        speeds = [float(np.median(departure[parts == k]) / interval) for k in range(int(parts.max()) + 1)]
+        record["speed_mps"] = speeds[0] if speeds else 0.0
+        record["part_speeds_mps"] = speeds or [0.0]
+        record["result"] = (np.where(moving[:, None], landing, ego), moving, parts)
     return record
 
 
+def _parts(p: np.ndarray, which: np.ndarray, moving: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
+    """(M,) part of each point of an object (-1: not moving): its moving points grouped by
+    the motion they took (``which``), each group split into BEV connected components of
+    ``instance_cell_m``; components under ``min_points`` join the largest of their group.
+    Numbered by group, then by size (part 0: the largest of the first motion's)."""
+    parts = np.full(len(p), -1, dtype=np.int64)
+    n = 0
+    for m in np.unique(which[moving]):
+        sel = np.flatnonzero(moving & (which == m))
+        labels = bev_clusters(p[sel], c.instance_cell_m)
+        counts = np.bincount(labels)
+        order = np.argsort(-counts, kind="stable")
+        big = order[counts[order] >= c.min_points]
+        if big.size == 0:
+            big = order[:1]
+        number = np.full(len(counts), n, dtype=np.int64)  # small components: the largest
+        number[big] = n + np.arange(len(big))
+        parts[sel] = number[labels]
+        n += len(big)
+    return parts
+
+
 def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], surface: ScanSurface,
-                    c: ObjectRefinementConfig) -> np.ndarray:
-    """(M,3) landing of each point of ``p`` (frame k): the landing of the object motion that
+                    c: ObjectRefinementConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(M,3) landing of each point of ``p`` (frame k) and (M,) the index of the motion it
+    took (-1: the ego motion): the landing of the object motion that
     puts it nearest to scan k's surface (the first when none lands within
     ``score_distance_m``), unless that leaves it off the surface (no scan point within
     ``score_plane_m``) while its ego landing ``ego`` is strictly nearer: then the ego
@@ -374,7 +458,7 @@ def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], s
     car slides along explain its ego landings too, and must not split it); the others are
     the static false positives merged into the object."""
     if not motions:
-        return ego
+        return ego, np.full(len(p), -1, dtype=np.int64)
     landings = np.stack([transform_points(M, p) for M in motions])
     dist = surface.tree.query(landings.reshape(-1, 3), distance_upper_bound=c.score_distance_m)[0]
     dist = dist.reshape(len(motions), len(p))
@@ -383,4 +467,4 @@ def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], s
     d_ego = surface.tree.query(ego, distance_upper_bound=c.score_distance_m)[0]
     nearest = dist[best, rows]
     take_ego = (d_ego < nearest) & ~(nearest <= c.score_plane_m)
-    return np.where(take_ego[:, None], ego, landings[best, rows])
+    return np.where(take_ego[:, None], ego, landings[best, rows]), np.where(take_ego, -1, best)
