@@ -207,6 +207,7 @@ def refine_objects(
     instance = np.full(len(source), -1, dtype=np.int64)
     clusters = _clusters(source, cand, c)
     grown = []  # (object, its motion, its dynamic points) to grow
+    motion_of = np.full(len(source), -1, dtype=np.int64)  # index of the object motion a point took
     for idx, static_score in zip(clusters, _static_scores(source, clusters, T_ego, surface, c)):
         own = instance[idx] = len(objects)
         record = _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
@@ -214,20 +215,17 @@ def refine_objects(
         motion = record.pop("motion", None)
         objects.append(record)
         if "result" in record:
-            landing, moving, parts = record.pop("result")
+            landing, moving, motion_of[idx] = record.pop("result")
             flow[idx], dynamic[idx], settled[idx] = landing - source[idx], moving, True
-            speeds = record.pop("part_speeds_mps")
-            for part in range(1, len(speeds)):  # part 0 keeps the object's own entry
-                instance[idx[parts == part]] = len(objects)
-                objects.append({"points": int(np.count_nonzero(parts == part)), "part_of": own,
-                                "accepted": True, "speed_mps": speeds[part]})
             if motion is not None and moving.any():
                 grown.append((own, motion, idx[moving]))
     if grown and above_ground is not None and c.grow_max_extent_m > 0:
         solid = np.flatnonzero(np.asarray(above_ground, bool) & near)
         for i, extra, landing, moving in _grow(source, solid, grown, settled, T_ego, surface, interval, c):
             flow[extra], dynamic[extra], settled[extra], instance[extra] = landing - source[extra], moving, True, i
+            motion_of[extra] = 0
             objects[i]["grown_points"] = int(len(extra))
+    _split_instances(source, flow, dynamic & settled, instance, motion_of, objects, T_ego, interval, c)
     # the rest of the network's dynamic points: static if the ego motion lands them on a surface
     rest = np.flatnonzero(dynamic & ~settled)
     on_surface = np.zeros(0, dtype=bool)
@@ -301,7 +299,9 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
           surface: ScanSurface, interval: float, c: ObjectRefinementConfig):
     """For each moving object ``(index, motion, its dynamic points)``: the unsettled points of
     the small BEV components of ``solid`` (above-ground point indices) it lies in, when its
-    motion explains at least ``min_fitness`` of such a component; yields ``(index, points,
+    motion explains at least ``min_fitness`` of such a component and the ego motion
+    explains less of it by ``static_preference`` (else it is static structure beside the
+    mover: a wall a pedestrian walks along); yields ``(index, points,
     their landings (frame k; the ego landing where not moving), moving)`` for the points
     its motion explains."""
     if solid.size == 0:
@@ -321,6 +321,9 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
             explained = _plane_distances(landing, surface, c) < c.score_plane_m
             if explained.mean() < c.min_fitness:
                 continue
+            ego_fit = _fit(_plane_distances(transform_points(T_ego, source[members]), surface, c), c)[0]
+            if ego_fit >= explained.mean() - c.static_preference:
+                continue  # the ego motion explains it as well: static structure next to the mover
             extra = explained & ~taken[members]
             if not extra.any():
                 continue
@@ -379,7 +382,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     record = {"points": int(len(p)), "static_fitness": static_fitness, "static_rmse_m": static_rmse,
               "accepted": False}
     if static_fitness >= c.static_fitness_accept and static_rmse <= c.static_accept_rmse_m:  # static: skip the ICP
-        record.update(accepted=True, speed_mps=0.0, part_speeds_mps=[0.0],
+        record.update(accepted=True, speed_mps=0.0,
                       result=(ego, np.zeros(len(p), dtype=bool), np.full(len(p), -1, dtype=np.int64)))
         return record
     R = T_ego[:3, :3]
@@ -417,12 +420,33 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         landing, which = _choose_landing(p, ego, motions, surface, c)
         departure = np.linalg.norm(landing - ego, axis=1)
         moving = departure > c.dynamic_speed_mps * interval
-        parts = _parts(p, which, moving, c)
-        speeds = [float(np.median(departure[parts == k]) / interval) for k in range(int(parts.max()) + 1)]
-        record["speed_mps"] = speeds[0] if speeds else 0.0
-        record["part_speeds_mps"] = speeds or [0.0]
-        record["result"] = (np.where(moving[:, None], landing, ego), moving, parts)
+        record["speed_mps"] = float(np.median(departure[moving]) / interval) if moving.any() else 0.0
+        record["result"] = (np.where(moving[:, None], landing, ego), moving, which)
     return record
+
+
+def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, instance: np.ndarray,
+                     motion_of: np.ndarray, objects: list[dict], T_ego: np.ndarray, interval: float,
+                     c: ObjectRefinementConfig) -> None:
+    """Split every object's ``moving`` points into instances (:func:`_parts`: by the motion
+    they took, ``motion_of``, then by ``instance_cell_m`` components); part 0 keeps the
+    object's entry and ``instance`` id, each further part gets a new entry (``part_of``)
+    appended to ``objects``. Speeds (m/s) are the parts' median departure from the ego
+    landing (``flow`` against ``T_ego``'s) over ``interval`` s."""
+    idx = np.flatnonzero(moving & (instance >= 0))
+    if idx.size == 0:
+        return
+    departure = np.linalg.norm(source[idx] + flow[idx] - transform_points(T_ego, source[idx]), axis=1) / interval
+    order = np.argsort(instance[idx], kind="stable")
+    for members in np.split(order, np.flatnonzero(np.diff(instance[idx][order])) + 1):
+        own = int(instance[idx[members[0]]])
+        parts = _parts(source[idx[members]], motion_of[idx[members]], np.ones(len(members), bool), c)
+        objects[own]["speed_mps"] = float(np.median(departure[members[parts == 0]]))
+        for part in range(1, int(parts.max()) + 1):
+            mine = idx[members[parts == part]]
+            instance[mine] = len(objects)
+            objects.append({"points": int(len(mine)), "part_of": own, "accepted": True,
+                            "speed_mps": float(np.median(departure[members[parts == part]]))})
 
 
 def _parts(p: np.ndarray, which: np.ndarray, moving: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
