@@ -622,6 +622,8 @@ def adapt_command(
         "--config", "-c", help="Run config YAML: its ssf: section makes the teacher, its adapt: section the run.")] = None,
     out_dir: Annotated[Optional[Path], typer.Option(
         "--out-dir", "-o", help="Teacher cache, checkpoints and report (default runs/adapt).")] = None,
+    cache_dir: Annotated[Optional[Path], typer.Option(
+        "--cache-dir", help="Teacher cache shared between adapt runs (default OUT_DIR/cache).")] = None,
     epochs: Annotated[Optional[int], typer.Option("--epochs", help="Passes over the training pairs.")] = None,
     holdout: Annotated[Optional[float], typer.Option(
         "--holdout", help="Fraction of each sequence's last frames never trained on (0.2 default).")] = None,
@@ -643,7 +645,8 @@ def adapt_command(
 
         cfg = load_config(config, **{
             "ssf.network.weights": weights and str(weights), "dataset.first_frame": first,
-            "dataset.max_frames": max_frames, "adapt.out_dir": out_dir and str(out_dir), "adapt.epochs": epochs,
+            "dataset.max_frames": max_frames, "adapt.out_dir": out_dir and str(out_dir),
+            "adapt.cache_dir": cache_dir and str(cache_dir), "adapt.epochs": epochs,
             "adapt.holdout_fraction": holdout, "adapt.max_minutes": max_minutes})
         result = adapt(sequences, cfg, weights_out, resume=resume, progress=not no_progress)
         table = Table(title=f"network-only ssf on the held-out frames (weights of epoch {result['written_epoch']}, "

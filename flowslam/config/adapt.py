@@ -41,6 +41,10 @@ class AdaptConfig(StrictModel):
 
     out_dir: Path = Path("runs/adapt")
     """Teacher cache, checkpoints, ``history.json`` and ``report.json`` go here."""
+    cache_dir: Path | None = None
+    """Where the teacher's cache lives instead of ``out_dir/cache``: adapt runs that share
+    it compute the teacher of a sequence once (a run over fewer frames of it reads the
+    cached prefix)."""
     holdout_fraction: float = Field(0.2, gt=0, lt=1)
     """The last fraction of each sequence's frames (at least 2) is never trained on: it
     stops the adaptation early and the report compares the models there."""

@@ -198,7 +198,7 @@ def _teachers(sequences: list[Sequence], config: PipelineConfig, weights_hash: s
               on_frame: Callable[[], None] | None) -> None:
     for seq in sequences:
         folder = cache / f"teacher-{cache_key(seq.path, seq.frames, config, weights_hash)}"
-        seq.teacher = load_teacher(folder)
+        seq.teacher = load_teacher(folder, seq.frames)
         if seq.teacher is None:
             seq.teacher = run_teacher(seq.dataset, seq.frames, config, folder,
                                       (lambda _i: on_frame()) if on_frame else None)
@@ -238,7 +238,7 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
     bar = _Bar(progress)
     try:
         bar.stage("teacher (refined ssf)", sum(len(s.frames) for s in sequences))
-        _teachers(sequences, config, init_hash, out_dir / "cache", bar.advance)
+        _teachers(sequences, config, init_hash, Path(a.cache_dir) if a.cache_dir else out_dir / "cache", bar.advance)
         model = build_model(payload).to(device)
         num_frames = model.config.num_frames
         max_points = a.max_points or config.ssf.network.max_points

@@ -8,8 +8,12 @@ moving-object instance ids and the odometry step ``T_prev_curr``. The chained st
 with them exactly as inference does. No ground truth is read.
 
 The cache lives in ``<cache_dir>/teacher-<key>/``, ``key`` a hash of the sequence path,
-the frame range, the ``ssf`` and ``flow_odometry`` options and the weights' hash; a
-folder without its ``meta.json`` (an interrupted run) is recomputed.
+its first frame, the ``ssf``, ``flow_odometry`` and ``dataset`` options (the frame count
+aside) and the weights' hash; a folder without its ``meta.json`` (an interrupted run) is
+recomputed. The teacher is causal (pair k sees scans up to k), so a cached run over more
+frames of the same sequence serves a shorter one as its prefix (runs that differ only in
+``--holdout`` or ``-n`` share one teacher run, and so its exact outputs); a longer run
+than the cached one recomputes and replaces it.
 """
 
 from __future__ import annotations
@@ -66,11 +70,14 @@ class Teacher:
 
 
 def cache_key(path: Path, frames: list[int], config: PipelineConfig, weights_hash: str) -> str:
-    """16 hex digits identifying a teacher run."""
+    """16 hex digits identifying the teacher runs of one sequence from ``frames[0]`` on (of
+    any length: :func:`load_teacher` serves a prefix)."""
+    dataset = json.loads(config.dataset.model_dump_json())
+    dataset.pop("max_frames", None)
     payload = json.dumps({
-        "path": str(Path(path).resolve()), "frames": [frames[0], frames[-1], len(frames)],
+        "path": str(Path(path).resolve()), "first": frames[0],
         "ssf": json.loads(config.ssf.model_dump_json()), "flow_odometry": json.loads(config.flow_odometry.model_dump_json()),
-        "dataset": json.loads(config.dataset.model_dump_json()), "weights": weights_hash,
+        "dataset": dataset, "weights": weights_hash,
     }, sort_keys=True)
     return hashlib.sha256(payload.encode()).hexdigest()[:16]
 
@@ -85,16 +92,19 @@ def _load_pair(file: Path) -> TeacherPair:
         return TeacherPair(int(file.stem.split("_")[1]), z["flow"], z["static"], z["instance"], z["T_prev_curr"])
 
 
-def load_teacher(folder: Path) -> Teacher | None:
-    """The cached teacher in ``folder``, or None when it is missing or incomplete."""
+def load_teacher(folder: Path, frames: list[int] | None = None) -> Teacher | None:
+    """The cached teacher in ``folder`` over ``frames`` (all it holds when None), or None
+    when it is missing, incomplete or does not start with ``frames``."""
     meta = folder / "meta.json"
     if not meta.is_file():
         return None
-    info = json.loads(meta.read_text())
-    poses = np.load(folder / "poses.npy")
-    frames = [int(i) for i in info["frames"]]
-    pairs = {p.index: p for p in map(_load_pair, sorted(folder.glob("pair_*.npz")))}
-    return Teacher(frames, dict(zip(frames, poses)), pairs)
+    cached = [int(i) for i in json.loads(meta.read_text())["frames"]]
+    frames = cached if frames is None else [int(i) for i in frames]
+    if cached[:len(frames)] != frames:
+        return None
+    poses = dict(zip(cached, np.load(folder / "poses.npy")))
+    pairs = {index: _load_pair(folder / f"pair_{index:06d}.npz") for index in frames[1:]}
+    return Teacher(frames, {i: poses[i] for i in frames}, pairs)
 
 
 def run_teacher(dataset: Dataset, frames: list[int], config: PipelineConfig, folder: Path,
