@@ -217,7 +217,7 @@ def refine_objects(
         if "result" in record:
             landing, moving, motion_of[idx] = record.pop("result")
             flow[idx], dynamic[idx], settled[idx] = landing - source[idx], moving, True
-            if motion is not None and moving.any():
+            if motion is not None and moving.any() and seen[idx].sum() >= c.grow_min_seen_through:
                 grown.append((own, motion, idx[moving]))
     if grown and above_ground is not None and c.grow_max_extent_m > 0:
         solid = np.flatnonzero(np.asarray(above_ground, bool) & near)
