@@ -97,18 +97,28 @@ def test_a_moving_car_becomes_one_dynamic_instance_and_the_parked_car_stays_stat
 def test_a_partly_flagged_car_grows_to_its_whole_body(pair):
     """The "network" flags only the front half of the moving car (x > 10 m in the world): the
     object's ICP finds the car's motion from that half, and the rest of the car's
-    above-ground component, which that motion explains, joins it (``grow_max_extent_m``);
-    without growth the rear half stays static. The parked car and the scene stay static."""
+    above-ground component, which that motion explains, joins it (``grow_max_extent_m``),
+    because scan k sees through where the car was (the geometric motion evidence,
+    ``grow_min_seen_through``); without growth, or without that evidence, the rear half
+    stays static. The parked car and the scene stay static."""
+    from flowslam.sceneflow.refinement.visibility import geometric_movers
+
     prev, curr, labels, T_ego = pair
     moving = labels == 1
     front = moving & (prev[:, 0] > 10.0)
     flow = geometry.rigid_flow(T_ego, prev)
     flow[front] += [0.8, 0.05, 0.0]
     above = prev[:, 2] > 0.1  # the road is at z = -0.01
+    _, seen = geometric_movers(prev, curr, T_ego)
+    assert seen[front].sum() >= 5 and not seen[labels != 1].any()
     common = (prev, flow, front, curr, T_ego, DT)
-    grown = refine_objects(*common, ObjectRefinementConfig(grow_max_extent_m=8.0), above_ground=above)
-    plain = refine_objects(*common, ObjectRefinementConfig(grow_max_extent_m=0.0), above_ground=above)
+    grown = refine_objects(*common, ObjectRefinementConfig(grow_max_extent_m=8.0), above_ground=above,
+                           seen_through=seen)
+    plain = refine_objects(*common, ObjectRefinementConfig(grow_max_extent_m=0.0), above_ground=above,
+                           seen_through=seen)
+    unseen = refine_objects(*common, ObjectRefinementConfig(grow_max_extent_m=8.0), above_ground=above)
     assert plain.dynamic[moving].mean() < 0.7  # the rear half is left out
+    assert unseen.dynamic[moving].mean() < 0.7  # no free space where it was: no growth
     assert grown.dynamic[moving].mean() > 0.95
     assert not grown.dynamic[labels != 1].any()
     ids = grown.instance[moving & grown.dynamic]
