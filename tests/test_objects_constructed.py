@@ -110,7 +110,7 @@ def test_a_partly_flagged_car_grows_to_its_whole_body(pair):
     flow[front] += [0.8, 0.05, 0.0]
     above = prev[:, 2] > 0.1  # the road is at z = -0.01
     _, seen = geometric_movers(prev, curr, T_ego)
-    assert seen[front].sum() >= 5 and not seen[labels != 1].any()
+    assert seen[moving].sum() >= 5 and not seen[labels != 1].any()  # free space where the car was
     common = (prev, flow, front, curr, T_ego, DT)
     grown = refine_objects(*common, ObjectRefinementConfig(grow_max_extent_m=8.0), above_ground=above,
                            seen_through=seen)

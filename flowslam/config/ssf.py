@@ -161,9 +161,10 @@ class ObjectRefinementConfig(StrictModel):
     leaves the surface only at its ends). Real AV2 pair: 3-way EPE 0.160 -> 0.074, Dynamic
     IoU 0.27 -> 0.58 (docs/sceneflow_evaluation.md). 0: never."""
     grow_min_seen_through: int = Field(5, ge=0)
-    """Only objects holding at least this many seen-through points (free space in scan k
-    where they were, ``motion_evidence``) grow: an object of scan k-1 hidden in scan k
-    also fits some shifted surface by ICP, but scan k does not see through it."""
+    """An object grows only into components holding at least this many seen-through points
+    (free space in scan k where they were, ``motion_evidence``): an object of scan k-1
+    hidden in scan k also fits some shifted surface by ICP, but scan k does not see
+    through it (static preset: the grown false movers were such objects)."""
     max_icp_points: int = Field(1000, ge=10)
     """Points of an object its ICP registers and scores: an evenly strided subset of a
     bigger object (its static score and every point's landing use all its points). Merged

@@ -217,11 +217,11 @@ def refine_objects(
         if "result" in record:
             landing, moving, motion_of[idx] = record.pop("result")
             flow[idx], dynamic[idx], settled[idx] = landing - source[idx], moving, True
-            if motion is not None and moving.any() and seen[idx].sum() >= c.grow_min_seen_through:
+            if motion is not None and moving.any():
                 grown.append((own, motion, idx[moving]))
     if grown and above_ground is not None and c.grow_max_extent_m > 0:
         solid = np.flatnonzero(np.asarray(above_ground, bool) & near)
-        for i, extra, landing, moving in _grow(source, solid, grown, settled, T_ego, surface, interval, c):
+        for i, extra, landing, moving in _grow(source, solid, grown, settled, seen, T_ego, surface, interval, c):
             flow[extra], dynamic[extra], settled[extra], instance[extra] = landing - source[extra], moving, True, i
             motion_of[extra] = 0
             objects[i]["grown_points"] = int(len(extra))
@@ -295,13 +295,15 @@ def object_target_range(c: ObjectRefinementConfig) -> float:
     return c.max_range_m + c.margin_m + 5.0
 
 
-def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarray, T_ego: np.ndarray,
-          surface: ScanSurface, interval: float, c: ObjectRefinementConfig):
+def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarray, seen: np.ndarray,
+          T_ego: np.ndarray, surface: ScanSurface, interval: float, c: ObjectRefinementConfig):
     """For each moving object ``(index, motion, its dynamic points)``: the unsettled points of
     the small BEV components of ``solid`` (above-ground point indices) it lies in, when its
-    motion explains at least ``min_fitness`` of such a component and the ego motion
-    explains less of it by ``static_preference`` (else it is static structure beside the
-    mover: a wall a pedestrian walks along); yields ``(index, points,
+    motion explains at least ``min_fitness`` of such a component, the ego motion explains
+    less of it by ``static_preference`` (else it is static structure beside the mover: a
+    wall a pedestrian walks along) and it holds ``grow_min_seen_through`` seen-through
+    points (``seen``: scan k sees through where it was; an object of scan k-1 hidden in
+    scan k also fits a shifted surface, but nothing is seen through it); yields ``(index, points,
     their landings (frame k; the ego landing where not moving), moving)`` for the points
     its motion explains."""
     if solid.size == 0:
@@ -317,6 +319,8 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
         comps = comps[small[comps]]
         for comp in comps:
             members = solid[labels == comp]
+            if seen[members].sum() < c.grow_min_seen_through:
+                continue
             landing = transform_points(motion, source[members])
             explained = _plane_distances(landing, surface, c) < c.score_plane_m
             if explained.mean() < c.min_fitness:
