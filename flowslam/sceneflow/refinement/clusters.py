@@ -52,12 +52,18 @@ def bev_clusters(points: np.ndarray, cell: float) -> np.ndarray:
 
 
 def bev_extent(xy: np.ndarray, labels: np.ndarray, n_labels: int) -> np.ndarray:
-    """(n_labels,) diagonal (m) of each label's axis-aligned BEV bounding box (``np.ptp`` per label)."""
-    lo = np.full((n_labels, 2), np.inf)
-    hi = np.full((n_labels, 2), -np.inf)
-    np.minimum.at(lo, labels, xy)
-    np.maximum.at(hi, labels, xy)
-    return np.hypot(*(hi - lo).T)
+    """(n_labels,) diagonal (m) of each label's axis-aligned BEV bounding box (``np.ptp`` per
+    label; -inf for a label without points). Points grouped by a stable sort, then
+    ``reduceat`` (``np.minimum.at`` took ~6 ms on 60k points)."""
+    extent = np.full(n_labels, -np.inf)
+    if len(labels) == 0:
+        return extent
+    order = np.argsort(labels, kind="stable")
+    sorted_labels, xy = labels[order], xy[order]
+    first = np.flatnonzero(np.r_[True, sorted_labels[1:] != sorted_labels[:-1]])
+    span = np.maximum.reduceat(xy, first, axis=0) - np.minimum.reduceat(xy, first, axis=0)
+    extent[sorted_labels[first]] = np.hypot(span[:, 0], span[:, 1])
+    return extent
 
 
 def bev_cell_ids(points: np.ndarray, cell: float) -> tuple[np.ndarray, tuple[int, int], np.ndarray]:

@@ -306,6 +306,17 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
     scan k also fits a shifted surface, but nothing is seen through it); yields ``(index, points,
     their landings (frame k; the ego landing where not moving), moving)`` for the points
     its motion explains."""
+    # only components of at most grow_max_extent_m can join, so only points that close to a
+    # mover's points (in x and y) can belong to one: the others are not clustered at all
+    reach = c.grow_max_extent_m + c.cluster_cell_m
+    by_x = solid[np.argsort(source[solid, 0], kind="stable")]
+    x = source[by_x, 0]
+    near = []
+    for _, _, core in grown:
+        lo, hi = source[core, :2].min(axis=0) - reach, source[core, :2].max(axis=0) + reach
+        band = by_x[np.searchsorted(x, lo[0]):np.searchsorted(x, hi[0], side="right")]
+        near.append(band[(source[band, 1] >= lo[1]) & (source[band, 1] <= hi[1])])
+    solid = np.unique(np.concatenate(near))  # sorted, as ``solid`` was
     if solid.size == 0:
         return
     labels = bev_clusters(source[solid], c.cluster_cell_m)
