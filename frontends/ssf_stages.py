@@ -371,7 +371,7 @@ class ObjectsStage:
         from flowslam.sceneflow.refinement.clusters import LocalGround, ScanSurface
         from flowslam.sceneflow.refinement.objects import (
             object_target_range,
-            refine_objects_iteratively,
+            refine_objects,
         )
         from flowslam.sceneflow.refinement.visibility import geometric_movers
 
@@ -390,8 +390,8 @@ class ObjectsStage:
         if evidence.enabled:
             movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground)
         above = ground.above(evidence.ground_clearance_m) if c.grow_max_extent_m > 0 else None  # for the growth only
-        objects = refine_objects_iteratively(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
-                                             state.refined.target_tree, movers, seen, surface, above)
+        objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
+                                 state.refined.target_tree, movers, seen, surface, above)
         accepted = np.array([o["accepted"] for o in objects.objects] + [False])  # [-1] -> False
         state.flow, state.static = objects.flow, ~objects.dynamic
         state.instance = np.where(accepted[objects.instance], objects.instance, -1)

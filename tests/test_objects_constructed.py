@@ -213,20 +213,18 @@ def test_slow_walkers_keep_their_motion_and_become_two_instances(walkers):
 
 
 def test_the_flow_segmentation_loop_stops_when_the_rounds_agree():
-    """``refine_objects_iteratively`` on the two-car scene: each round starts from the
+    """``refine_objects`` with ``iterations`` on the two-car scene: each round starts from the
     previous round's flow and labels and finds the same segmentation up to a few points
     at sampling gaps (~0.3 % of the cars' points), so the loop stops (``converged_share``:
     0.5 %) by its third round, well under its cap, with the result of one round (to 1 %
     of the cars' points)."""
-    from flowslam.sceneflow.refinement.objects import refine_objects_iteratively
-
     prev, curr, labels, T_ego = _pair(oncoming=True)
     flow = geometry.rigid_flow(T_ego, prev)
     flow[labels == 1] += [0.8, 0.05, 0.0]
     flow[labels == 3] += [-0.6, -0.05, 0.0]
     args = (prev, flow, labels > 0, curr, T_ego, DT)
-    once = refine_objects_iteratively(*args, ObjectRefinementConfig(iterations=1))
-    loop = refine_objects_iteratively(*args, ObjectRefinementConfig(iterations=5))
+    once = refine_objects(*args, ObjectRefinementConfig(iterations=1))
+    loop = refine_objects(*args, ObjectRefinementConfig(iterations=5))
     assert once.stats["iterations"] == 1 and once.stats["round_changes"] == []
     assert loop.stats["iterations"] <= 3 and len(loop.stats["round_changes"]) == loop.stats["iterations"] - 1
     assert loop.stats["round_changes"][-1] <= 0.005 * np.count_nonzero(labels % 2)  # cars: labels 1 and 3

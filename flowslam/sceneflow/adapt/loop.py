@@ -238,7 +238,7 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
     bar = _Bar(progress)
     try:
         bar.stage("teacher (refined ssf)", sum(len(s.frames) for s in sequences))
-        _teachers(sequences, config, init_hash, Path(a.cache_dir) if a.cache_dir else out_dir / "cache", bar.advance)
+        _teachers(sequences, config, init_hash, a.cache_dir or out_dir / "cache", bar.advance)
         model = build_model(payload).to(device)
         num_frames = model.config.num_frames
         max_points = a.max_points or config.ssf.network.max_points

@@ -30,7 +30,7 @@ from a box-only one only where a motion puts them near the box's edge (target no
 there then see their neighbours outside the box too); no output changed on the KITTI
 and simulated rush-hour pairs replayed against the box-only version.
 
-:func:`refine_objects_iteratively` repeats the refinement (SSF-PAN's flow <->
+:func:`refine_objects` repeats the refinement (SSF-PAN's flow <->
 segmentation loop, ``iterations``): each round clusters the points the previous round
 left dynamic (the static false positives it split off no longer pull on an object's
 ICP), starts each object's ICP from the flow the previous round gave it, and relabels,
@@ -54,7 +54,7 @@ from flowslam.geometry import rigid_flow, transform_points
 from flowslam.config.ssf import ObjectRefinementConfig
 from flowslam.sceneflow.refinement.clusters import ScanSurface, bev_clusters, bev_extent
 
-__all__ = ["ObjectRefinement", "refine_objects", "refine_objects_iteratively"]
+__all__ = ["ObjectRefinement", "refine_objects"]
 
 
 
@@ -176,7 +176,11 @@ def refine_objects(
     above_ground: np.ndarray | None = None,
 ) -> ObjectRefinement:
     """Refine the flow of the candidate moving points of ``source`` (scan k-1) against
-    ``target`` (scan k) given the ego motion ``T_ego`` = ``T_{k,k-1}`` (module doc).
+    ``target`` (scan k) given the ego motion ``T_ego`` = ``T_{k,k-1}`` (module doc), in at
+    most ``iterations`` rounds (SSF-PAN's flow <-> segmentation loop): round i+1 takes
+    round i's flow and dynamic labels as its input, and keeps the geometric movers round i
+    left dynamic. The result is the last round's, with ``stats["iterations"]`` (rounds
+    run) and ``stats["round_changes"]`` (labels changed by each round after the first).
 
     ``flow`` (N,3) is the network's flow, ``dynamic`` (N,) its labels, ``dt`` the scan
     interval (s). In the result, static points have the ego-rigid flow of ``T_ego``,
@@ -192,16 +196,37 @@ def refine_objects(
     from scipy.spatial import cKDTree
 
     c = config or ObjectRefinementConfig()
-    flow, dynamic = np.array(flow, dtype=np.float64), np.array(dynamic, dtype=bool)
     if target_tree is None:
         target_tree = cKDTree(target)
     if surface is None:
         surface = ScanSurface(target, object_target_range(c))
     movers = np.zeros(len(source), dtype=bool) if movers is None else np.asarray(movers, dtype=bool)
     seen = np.zeros(len(source), dtype=bool) if seen_through is None else np.asarray(seen_through, dtype=bool)
+    interval = dt if dt and dt > 0 else 0.1
+    scene = (source, T_ego, interval, target_tree, seen, surface, above_ground, c)
+    result = _refine_round(np.array(flow, dtype=np.float64), np.array(dynamic, dtype=bool), movers, *scene)
+    changes = []
+    while len(changes) + 1 < c.iterations:
+        nxt = _refine_round(result.flow.copy(), result.dynamic.copy(), movers & result.dynamic, *scene)
+        relabelled = int(np.count_nonzero(nxt.dynamic != result.dynamic))
+        either = int(np.count_nonzero(nxt.dynamic | result.dynamic))
+        both = nxt.dynamic & result.dynamic  # a relabelled point counts in ``relabelled`` only
+        moved = float(np.linalg.norm(nxt.flow[both] - result.flow[both], axis=1).mean()) if both.any() else 0.0
+        changes.append(relabelled)
+        result = nxt
+        if relabelled <= c.converged_share * either and moved <= c.converged_flow_m:
+            break
+    result.stats.update(iterations=len(changes) + 1, round_changes=changes)
+    return result
+
+
+def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, source: np.ndarray, T_ego: np.ndarray,
+                  interval: float, target_tree, seen: np.ndarray, surface: ScanSurface,
+                  above_ground: np.ndarray | None, c: ObjectRefinementConfig) -> ObjectRefinement:
+    """One round of :func:`refine_objects` (its arguments, prepared; ``flow`` and ``dynamic``
+    are updated in place and returned in the result)."""
     near = np.einsum("ij,ij->i", source[:, :2], source[:, :2]) < c.max_range_m ** 2
     cand = np.flatnonzero((dynamic & near) | movers)
-    interval = dt if dt and dt > 0 else 0.1
     objects = []
     settled = np.zeros(len(source), dtype=bool)
     instance = np.full(len(source), -1, dtype=np.int64)
@@ -243,51 +268,6 @@ def refine_objects(
         "relabelled_static": int(on_surface.sum()),
     }
     return ObjectRefinement(flow, dynamic, instance, objects, stats)
-
-
-def refine_objects_iteratively(
-    source: np.ndarray,
-    flow: np.ndarray,
-    dynamic: np.ndarray,
-    target: np.ndarray,
-    T_ego: np.ndarray,
-    dt: float,
-    config: ObjectRefinementConfig | None = None,
-    target_tree=None,
-    movers: np.ndarray | None = None,
-    seen_through: np.ndarray | None = None,
-    surface: ScanSurface | None = None,
-    above_ground: np.ndarray | None = None,
-) -> ObjectRefinement:
-    """:func:`refine_objects` (same arguments) repeated as SSF-PAN's flow <-> segmentation
-    loop (module doc), at most ``iterations`` rounds. Round i+1 takes round i's flow and
-    dynamic labels as its input; the geometric movers it keeps are those round i left
-    dynamic. The result is the last round's, with ``stats["iterations"]`` (rounds run) and
-    ``stats["round_changes"]`` (labels changed by each round after the first)."""
-    from scipy.spatial import cKDTree
-
-    c = config or ObjectRefinementConfig()
-    if target_tree is None:
-        target_tree = cKDTree(target)
-    if surface is None:
-        surface = ScanSurface(target, object_target_range(c))
-    movers = np.zeros(len(source), dtype=bool) if movers is None else np.asarray(movers, dtype=bool)
-    common = dict(target_tree=target_tree, seen_through=seen_through, surface=surface, above_ground=above_ground)
-    result = refine_objects(source, flow, dynamic, target, T_ego, dt, c, movers=movers, **common)
-    changes = []
-    while len(changes) + 1 < c.iterations:
-        nxt = refine_objects(source, result.flow, result.dynamic, target, T_ego, dt, c,
-                             movers=movers & result.dynamic, **common)
-        relabelled = int(np.count_nonzero(nxt.dynamic != result.dynamic))
-        either = int(np.count_nonzero(nxt.dynamic | result.dynamic))
-        both = nxt.dynamic & result.dynamic  # a relabelled point counts in ``relabelled`` only
-        moved = float(np.linalg.norm(nxt.flow[both] - result.flow[both], axis=1).mean()) if both.any() else 0.0
-        changes.append(relabelled)
-        result = nxt
-        if relabelled <= c.converged_share * either and moved <= c.converged_flow_m:
-            break
-    result.stats.update(iterations=len(changes) + 1, round_changes=changes)
-    return result
 
 
 def object_target_range(c: ObjectRefinementConfig) -> float:
@@ -435,7 +415,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         landing, which = _choose_landing(p, ego, motions, surface, c)
         departure = np.linalg.norm(landing - ego, axis=1)
         moving = departure > c.dynamic_speed_mps * interval
-        record["speed_mps"] = float(np.median(departure[moving]) / interval) if moving.any() else 0.0
+        record["speed_mps"] = 0.0  # a moving object's: :func:`_split_instances`, from its final flow
         record["result"] = (np.where(moving[:, None], landing, ego), moving, which)
     return record
 
@@ -455,7 +435,7 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
     order = np.argsort(instance[idx], kind="stable")
     for members in np.split(order, np.flatnonzero(np.diff(instance[idx][order])) + 1):
         own = int(instance[idx[members[0]]])
-        parts = _parts(source[idx[members]], motion_of[idx[members]], np.ones(len(members), bool), c)
+        parts = _parts(source[idx[members]], motion_of[idx[members]], c)
         objects[own]["speed_mps"] = float(np.median(departure[members[parts == 0]]))
         for part in range(1, int(parts.max()) + 1):
             mine = idx[members[parts == part]]
@@ -464,15 +444,15 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
                             "speed_mps": float(np.median(departure[members[parts == part]]))})
 
 
-def _parts(p: np.ndarray, which: np.ndarray, moving: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
-    """(M,) part of each point of an object (-1: not moving): its moving points grouped by
-    the motion they took (``which``), each group split into BEV connected components of
-    ``instance_cell_m``; components under ``min_points`` join the largest of their group.
-    Numbered by group, then by size (part 0: the largest of the first motion's)."""
-    parts = np.full(len(p), -1, dtype=np.int64)
+def _parts(p: np.ndarray, which: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
+    """(M,) part of each moving point of an object: grouped by the motion it took
+    (``which``), each group split into BEV connected components of ``instance_cell_m``;
+    components under ``min_points`` join the largest of their group. Numbered by group,
+    then by size (part 0: the largest of the first motion's)."""
+    parts = np.empty(len(p), dtype=np.int64)
     n = 0
-    for m in np.unique(which[moving]):
-        sel = np.flatnonzero(moving & (which == m))
+    for m in np.unique(which):
+        sel = np.flatnonzero(which == m)
         labels = bev_clusters(p[sel], c.instance_cell_m)
         counts = np.bincount(labels)
         order = np.argsort(-counts, kind="stable")
