@@ -173,7 +173,8 @@ class NetworkStage:
 
         from flowslam.sceneflow.network.propagate import propagate
 
-        with torch.inference_mode():
+        bf16 = self.options.cuda_bf16 and self.device.type == "cuda"
+        with torch.inference_mode(), torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
             out = self.model({"points": [[torch.from_numpy(p).to(self.device) for p in sample.points]]})
             values = torch.cat([out["flow"].float(), out["dynamic_logit"].float()[:, None]], dim=1)
             values = propagate(torch.from_numpy(points).to(self.device).float(),

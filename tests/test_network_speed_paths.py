@@ -185,6 +185,27 @@ def test_network_stage_on_the_gpu_equals_the_cpu(kitti_extract):
     assert np.mean(states["cuda"].static == states["cpu"].static) > 0.999
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (none on this machine)")
+def test_network_stage_in_bf16_on_the_gpu_stays_close_to_the_cpu(kitti_extract):
+    """``ssf.network.cuda_bf16``: the bf16 forward pass moves the flow by at most a few
+    centimetres (median under 5 mm) and flips almost no static/dynamic calls."""
+    from flowslam.datasets import open_dataset
+    from flowslam.frontends.ssf_stages import NetworkStage, PairState
+
+    ds = open_dataset(kitti_extract)
+    frames = [ds[i] for i in range(5)]
+    poses = [f.gt_pose for f in frames]
+    states = {}
+    for options in ({"device": "cpu"}, {"device": "cuda", "cuda_bf16": True}):
+        stage = NetworkStage(SsfConfig(network=options))
+        states[stage.device.type] = state = PairState(prev=frames[3], frame=frames[4], history=frames[:4],
+                                                      history_poses=poses[:4], T_world_guess=poses[4])
+        stage.run(state)
+    diff = np.linalg.norm(states["cuda"].flow - states["cpu"].flow, axis=1)
+    assert diff.max() < 0.05 and np.median(diff) < 0.005
+    assert np.mean(states["cuda"].static == states["cpu"].static) > 0.99
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc tuning is Linux-only")
 def test_release_free_heap_returns_what_the_tuned_allocator_keeps():
     """With the inference tuning (freed blocks stay in the heap) the resident set keeps what

@@ -89,6 +89,27 @@ def test_inference_sample_reads_no_ground_truth(sim_seq):
     assert s.residual is None and len(s.points) == 2 and s.points[0].shape == (1000, 3)
 
 
+def test_loader_workers_build_the_same_batches(sim_seq):
+    """``training.num_workers``: samples built in worker processes equal those built in
+    the training process (each depends only on seed, epoch and index)."""
+    from flowslam.sceneflow.network.train import FlowSamples, collate
+
+    data = FlowSamples([sim_seq], 5, 2048, PriorNoise(), seed=3)
+    data.epoch = 1
+    batches = {}
+    for workers in (0, 2):
+        loader = torch.utils.data.DataLoader(data, batch_size=2, shuffle=True, collate_fn=collate,
+                                             num_workers=workers, generator=torch.Generator().manual_seed(3))
+        batches[workers] = list(loader)
+    assert len(batches[0]) == len(batches[2]) == 2  # frames 4..7 of the 8-frame sequence
+    for a, b in zip(batches[0], batches[2]):
+        np.testing.assert_array_equal(a["residual"].numpy(), b["residual"].numpy())
+        np.testing.assert_array_equal(a["dynamic"].numpy(), b["dynamic"].numpy())
+        for pa, pb in zip(a["points"], b["points"]):
+            for x, y in zip(pa, pb):
+                np.testing.assert_array_equal(x.numpy(), y.numpy())
+
+
 def _config(sim_seq, out_dir, **kw):
     base = dict(data=[str(sim_seq)], val=[str(sim_seq)], out_dir=str(out_dir), epochs=2, batch_size=2,
                 max_points=1024, val_samples=2, num_frames=2, model_overrides={"half_extent": 25.6})

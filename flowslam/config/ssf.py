@@ -38,6 +38,10 @@ class NetworkStageConfig(StrictModel):
     device: str = "auto"
     """torch device of the network: 'auto' (the GPU when torch sees CUDA, else the CPU),
     'cpu', 'cuda', 'cuda:1', ..."""
+    cuda_bf16: bool = False
+    """On a CUDA device, run the forward pass under bf16 autocast (the selective scan stays
+    float32). Ignored on the CPU. Off by default: see ``docs/sceneflow_evaluation.md``
+    (GPU section) for its measured speed and flow difference."""
     num_threads: int | None = Field(None, ge=1)
     """torch intra-op threads on the CPU. None: 1 when ``OMP_WAIT_POLICY=PASSIVE`` (the
     CLI's default; a second thread gains nothing there, measured) or with ``ssf.lookahead``

@@ -78,6 +78,10 @@ class TrainConfig(StrictModel):
     """Stop (after a checkpoint) once this much wall time has passed."""
     val_samples: int = Field(24, ge=1)
     """Validation samples per epoch (fixed, seeded priors)."""
+    num_workers: int = Field(0, ge=0)
+    """DataLoader worker processes building the samples (0: in the training process). A
+    sample depends only on its seed, epoch and index, so the batches are the same for any
+    number of workers; on a GPU the workers keep it fed."""
     amp: bool = True
     """bf16 autocast on CUDA (ignored on CPU)."""
     num_threads: int | None = Field(None, ge=1)

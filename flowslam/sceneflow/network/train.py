@@ -196,7 +196,7 @@ def train(config: TrainConfig, resume: Path | None = None, progress: bool = True
     sampler = torch.utils.data.DistributedSampler(train_set, shuffle=True, seed=config.seed) if world > 1 else None
     loader = torch.utils.data.DataLoader(
         train_set, batch_size=config.batch_size, shuffle=sampler is None, sampler=sampler,
-        collate_fn=collate, num_workers=0, generator=torch.Generator().manual_seed(config.seed),
+        collate_fn=collate, num_workers=config.num_workers, generator=torch.Generator().manual_seed(config.seed),
     )
     total_steps = max(1, config.epochs * len(loader))
     scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, config.lr, total_steps=total_steps, pct_start=0.1)
