@@ -165,9 +165,8 @@ def test_network_stage_equals_eager_model(kitti_extract):
     np.testing.assert_allclose(state.dynamic_prob, prob, rtol=0, atol=PROB_ATOL)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (none on this machine)")
-def test_network_stage_on_the_gpu_equals_the_cpu(kitti_extract):
-    """``ssf.network.device: auto`` picks the GPU when there is one: the same flow there."""
+def _stage_states_per_device(kitti_extract, option_sets: list[dict]) -> dict:
+    """The network stage's pair state (KITTI frames 3 -> 4, GT history) per device type."""
     from flowslam.datasets import open_dataset
     from flowslam.frontends.ssf_stages import NetworkStage, PairState
 
@@ -175,11 +174,18 @@ def test_network_stage_on_the_gpu_equals_the_cpu(kitti_extract):
     frames = [ds[i] for i in range(5)]
     poses = [f.gt_pose for f in frames]
     states = {}
-    for device in ("cpu", "auto"):
-        stage = NetworkStage(SsfConfig(network={"device": device}))
+    for options in option_sets:
+        stage = NetworkStage(SsfConfig(network=options))
         states[stage.device.type] = state = PairState(prev=frames[3], frame=frames[4], history=frames[:4],
                                                       history_poses=poses[:4], T_world_guess=poses[4])
         stage.run(state)
+    return states
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (none on this machine)")
+def test_network_stage_on_the_gpu_equals_the_cpu(kitti_extract):
+    """``ssf.network.device: auto`` picks the GPU when there is one: the same flow there."""
+    states = _stage_states_per_device(kitti_extract, [{"device": "cpu"}, {"device": "auto"}])
     assert set(states) == {"cpu", "cuda"}
     np.testing.assert_allclose(states["cuda"].flow, states["cpu"].flow, rtol=0, atol=1e-3)  # TF32 / kernel order
     assert np.mean(states["cuda"].static == states["cpu"].static) > 0.999
@@ -189,18 +195,7 @@ def test_network_stage_on_the_gpu_equals_the_cpu(kitti_extract):
 def test_network_stage_in_bf16_on_the_gpu_stays_close_to_the_cpu(kitti_extract):
     """``ssf.network.cuda_bf16``: the bf16 forward pass moves the flow by at most a few
     centimetres (median under 5 mm) and flips almost no static/dynamic calls."""
-    from flowslam.datasets import open_dataset
-    from flowslam.frontends.ssf_stages import NetworkStage, PairState
-
-    ds = open_dataset(kitti_extract)
-    frames = [ds[i] for i in range(5)]
-    poses = [f.gt_pose for f in frames]
-    states = {}
-    for options in ({"device": "cpu"}, {"device": "cuda", "cuda_bf16": True}):
-        stage = NetworkStage(SsfConfig(network=options))
-        states[stage.device.type] = state = PairState(prev=frames[3], frame=frames[4], history=frames[:4],
-                                                      history_poses=poses[:4], T_world_guess=poses[4])
-        stage.run(state)
+    states = _stage_states_per_device(kitti_extract, [{"device": "cpu"}, {"device": "cuda", "cuda_bf16": True}])
     diff = np.linalg.norm(states["cuda"].flow - states["cpu"].flow, axis=1)
     assert diff.max() < 0.05 and np.median(diff) < 0.005
     assert np.mean(states["cuda"].static == states["cpu"].static) > 0.99
