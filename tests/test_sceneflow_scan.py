@@ -47,6 +47,24 @@ def test_values_and_gradients_match_reference_float32(L, chunk):
         assert _rel_err(g, gr) < 2e-5, name
 
 
+def test_mixed_precision_inputs_under_autocast_scan_and_backpropagate_in_float32():
+    """Autocast (bf16 training on a GPU) hands over some inputs in bf16 and others in float32:
+    the scan and its hand-written backward run in float32 (an earlier version failed in the
+    backward with 'expected scalar type Float but found BFloat16')."""
+    ins = _inputs(2, 300, 5, 4, seed=3)
+    mixed = [t.detach().to(torch.bfloat16).requires_grad_() if i in (3, 4) else t for i, t in enumerate(ins)]
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        y = selective_scan(*mixed, chunk=64)
+    rounded = [t.detach().float().requires_grad_() for t in mixed]  # the same values, all float32
+    y_ref = selective_scan_reference(*rounded)
+    assert y.dtype == torch.float32 and _rel_err(y, y_ref) < 2e-5
+    grads = torch.autograd.grad(y.sum(), mixed)
+    grads_ref = torch.autograd.grad(y_ref.sum(), rounded)
+    for name, g, gr in zip(("x", "delta", "A", "B", "C", "D"), grads, grads_ref):
+        assert g.dtype == mixed["x delta A B C D".split().index(name)].dtype, name
+        assert _rel_err(g.float(), gr) < 1e-2, name  # bf16 gradients of B and C
+
+
 def test_gradients_exact_in_float64():
     ins = _inputs(1, 150, 3, 2, dtype=torch.float64, seed=3)
     y = selective_scan(*ins, chunk=32)

@@ -236,8 +236,12 @@ def selective_scan(
     _check(x, delta, A, B, C, D)
     if x.shape[1] == 0:
         return x.clone()
-    if x.dtype in (torch.float16, torch.bfloat16):  # mixed precision: scan in float32
-        y = SelectiveScanFn.apply(*(t.float() for t in (x, delta, A, B, C, D)), int(chunk))
+    inputs = (x, delta, A, B, C, D)
+    if any(t.dtype in (torch.float16, torch.bfloat16) for t in inputs) or torch.is_autocast_enabled(x.device.type):
+        # mixed precision (autocast hands over some inputs in half precision): the scan and its
+        # hand-written backward run in float32, with autocast off so that no matmul drops back
+        with torch.autocast(x.device.type, enabled=False):
+            y = SelectiveScanFn.apply(*(t.float() for t in inputs), int(chunk))
         return y.to(x.dtype)
     return SelectiveScanFn.apply(x, delta, A, B, C, D, int(chunk))
 
