@@ -1,0 +1,40 @@
+#!/usr/bin/env bash
+# Device check on a CUDA machine (issues 12 and 14; not part of CI): the CUDA tests, the network
+# stage per torch device (tools/bench_network_device.py) and the GPU training throughput of the
+# tiny and full presets. For a machine that has torch with CUDA but none of open3d, gtsam,
+# kiss-icp, rosbags (those paths are not exercised here): flowslam is installed without its
+# dependencies into /tmp/fs, and pydantic & co. from wheels in WHEELS if that folder exists.
+#   FLOWSLAM_DATA=DIR (holding kitti-odometry-00-first16, frames 0-5 suffice)
+#   TRAIN_DATA=DIR (simulated training sequences; VAL names the held-out one)
+#   OUT=DIR (logs, bench JSON, histories, weights)   TRAIN_MIN=2 EPOCHS=20
+#   tools/gpu_check.sh
+R=$(pwd); PY=${PY:-python3}; TRAIN_MIN=${TRAIN_MIN:-2}; EPOCHS=${EPOCHS:-20}; WHEELS=${WHEELS:-.whl}
+export PYTHONUNBUFFERED=1
+mkdir -p "${OUT:=/tmp/gpu-check}"
+{
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
+$PY -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"
+if [ -d "$WHEELS" ]; then
+  $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "$WHEELS"/*.whl || exit 1
+fi
+$PY -m pip install -q --no-index --no-deps --no-build-isolation --no-compile --target /tmp/fs . >/dev/null 2>&1 || exit 1
+export PYTHONPATH=/tmp/fs:/tmp/site
+cd /tmp  # not the checkout: its flowslam/ folder lacks the plug-in packages
+echo "=== tests"; date
+timeout 300 $PY -m pytest -q -p no:cacheprovider -rs "$R"/tests/test_sceneflow_model.py \
+  "$R"/tests/test_network_speed_paths.py "$R"/tests/test_sceneflow_scan.py 2>&1 | tail -15
+echo "=== network stage per device"; date
+timeout 300 $PY "$R"/tools/bench_network_device.py --frames 6 --runs 5 --json "$OUT"/bench_network_device.json
+if [ -n "${TRAIN_DATA:-}" ]; then
+  echo "=== training throughput"; date
+  echo '{"num_workers": 8, "val_samples": 12}' > /tmp/gpu-check-train.json
+  mapfile -t seqs < <(find "$TRAIN_DATA" -mindepth 1 -maxdepth 1 -type d ! -path "$VAL")
+  for preset in tiny full; do
+    timeout $((TRAIN_MIN * 60 + 60)) $PY -m flowslam train "${seqs[@]}" --val "$VAL" --out-dir /tmp/tr_$preset \
+      --config /tmp/gpu-check-train.json --preset $preset --frames 5 --max-points 8192 --epochs "$EPOCHS" \
+      --batch-size 4 --lr 0.003 --max-minutes "$TRAIN_MIN" --seed 0 --export "$OUT"/$preset.pt --no-progress 2>&1 | tail -8
+    cp /tmp/tr_$preset/history.json "$OUT"/history_$preset.json || echo "no history for $preset"
+  done
+fi
+date
+} 2>&1 | tee "$OUT"/log.txt
