@@ -12,7 +12,6 @@ help lists the names registered when the command starts.
 from __future__ import annotations
 
 import logging
-import os
 import sys
 import time
 from contextlib import contextmanager
@@ -139,13 +138,9 @@ def _main(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Only warnings and errors.")] = False,
 ):
     _state["debug"] = debug
-    # Before torch loads OpenMP: spinning OpenMP threads turn a 0.1 s forward pass into
-    # seconds when the cores are shared (2-core machines); a user's own setting wins.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    # numpy's OpenBLAS threads spin too, and OMP_WAIT_POLICY does not reach them: one
-    # (N,3) @ (3,3) transform of a 124k-point scan took 48 ms under load, 3 ms on one thread
-    # (numpy is not imported yet here)
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    from flowslam.threads import set_thread_defaults
+
+    set_thread_defaults()  # before numpy, torch and Open3D load (passive OpenMP, one OpenBLAS thread)
     from rich.logging import RichHandler
 
     level = logging.DEBUG if debug else logging.WARNING if quiet else logging.INFO

@@ -23,7 +23,9 @@ the median per-frame time is printed beside it.
     python tools/bench_ssf_pipeline.py [SEQUENCE] [--runs 3] [--threads N] [--frames 16] [--skip-stages]
 
 The machine's load average is printed: on a shared machine the timings are upper bounds.
-Run with ``OMP_WAIT_POLICY=PASSIVE`` on a loaded machine (see ``bench_sceneflow.py``).
+The thread-pool environment is the one ``flowslam run`` sets (``flowslam.threads``:
+passive OpenMP waiting, one OpenBLAS thread; a variable set by the user wins) and is
+printed.
 """
 
 from __future__ import annotations
@@ -34,7 +36,11 @@ import statistics
 import time
 from pathlib import Path
 
-import numpy as np
+from flowslam.threads import set_thread_defaults
+
+THREAD_ENV = set_thread_defaults()  # as `flowslam run` does, before numpy loads
+
+import numpy as np  # noqa: E402
 
 DATA = Path(os.environ.get("FLOWSLAM_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
@@ -110,7 +116,7 @@ def main() -> None:
     frames = [ds[i] for i in range(min(args.frames, len(ds)))]
     n_points = int(np.median([len(f.points) for f in frames]))
     print(f"{args.sequence.name}: {len(frames)} frames, median {n_points} points; threads {args.threads or 'default'}; "
-          f"load average {os.getloadavg()[0]:.2f}")
+          f"load average {os.getloadavg()[0]:.2f}; " + " ".join(f"{k}={v}" for k, v in THREAD_ENV.items()))
     for name, options in ({} if args.skip_stages else CONFIGS).items():
         totals, stages = [], {}
         for _ in range(args.runs):

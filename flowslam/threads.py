@@ -1,0 +1,32 @@
+"""Thread-pool defaults of the native libraries, set before they load (no imports here).
+
+The ``flowslam`` command and the benchmark scripts call :func:`set_thread_defaults` first,
+before numpy, torch or Open3D are imported (their thread pools read the environment once,
+when they start), so that a benchmark measures what ``flowslam run`` does. A value the
+user set in the environment always wins.
+
+- ``OMP_WAIT_POLICY=PASSIVE``: spinning OpenMP threads turned a 0.1 s forward pass into
+  seconds when the cores are shared (2-core machines).
+- ``OPENBLAS_NUM_THREADS=1``: numpy's OpenBLAS threads spin too, and the wait policy does
+  not reach them; one (N,3) @ (3,3) transform of a 124k-point scan took 48 ms under load,
+  3 ms on one thread.
+
+Measured and not set: ``OMP_NUM_THREADS=1`` (half the cores on the 2-core VM, so that the
+two threads of ``ssf.lookahead`` do not oversubscribe it) changed nothing beyond the
+noise, 3.44-3.50 against 3.37-3.60 frames/s end to end (``docs/sceneflow_evaluation.md``).
+"""
+
+from __future__ import annotations
+
+import os
+
+__all__ = ["set_thread_defaults"]
+
+DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE", "OPENBLAS_NUM_THREADS": "1"}
+
+
+def set_thread_defaults() -> dict[str, str]:
+    """Set the defaults above where the environment has none; returns the values in effect."""
+    for name, value in DEFAULTS.items():
+        os.environ.setdefault(name, value)
+    return {name: os.environ[name] for name in DEFAULTS}
