@@ -16,6 +16,7 @@ from flowslam.sceneflow.refinement.clusters import (
     dense_grid_shape,
     grid_occupancy,
     grid_voxel_ids,
+    in_bounds,
 )
 
 __all__ = ["MoverPrior"]
@@ -82,7 +83,7 @@ class MoverPrior:
 
         r = self.radius_m
         lo, hi = self._landing.min(axis=0) - r, self._landing.max(axis=0) + r
-        inside = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
+        inside = np.flatnonzero(in_bounds(points, lo, hi))
         shape = dense_grid_shape(lo, hi, r) if r > 0 else None
         if shape is not None:
             grid = grid_occupancy(self._landing, lo, r, shape, dilate=True)
