@@ -144,3 +144,17 @@ def test_bev_extent_equals_ptp_per_label():
     got = bev_extent(xy, labels, 40)
     expected = [np.hypot(*np.ptp(xy[labels == k], axis=0)) for k in range(40)]
     np.testing.assert_allclose(got, expected)
+
+
+def test_in_bounds_equals_the_all_axes_test_including_points_on_the_bounds():
+    from flowslam.sceneflow.refinement.clusters import in_bounds
+
+    rng = np.random.default_rng(4)
+    lo, hi = np.array([-1.0, -2.0, 0.0]), np.array([1.0, 2.0, 0.5])
+    points = rng.uniform(-3, 3, (5000, 3))
+    points[:10] = lo  # exactly on a corner: inside
+    points[10:20] = hi
+    points[20:30] = np.nextafter(hi, np.inf)  # just beyond: outside
+    expected = np.all((points >= lo) & (points <= hi), axis=1)
+    assert np.array_equal(in_bounds(points, lo, hi), expected)
+    assert expected[:20].all() and not expected[20:30].any() and 0 < expected.sum() < len(points)
