@@ -224,6 +224,14 @@ def _check(x: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, D: Tensor)
         raise ValueError(f"D must be ({Dm},), got {tuple(D.shape)}")
 
 
+def _autocast_on(device_type: str) -> bool:
+    """Whether autocast is on for ``device_type`` (torch < 2.4 takes no device type)."""
+    try:
+        return torch.is_autocast_enabled(device_type)
+    except TypeError:
+        return torch.is_autocast_cpu_enabled() if device_type == "cpu" else torch.is_autocast_enabled()
+
+
 def selective_scan(
     x: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, D: Tensor, chunk: int = 128
 ) -> Tensor:
@@ -237,7 +245,7 @@ def selective_scan(
     if x.shape[1] == 0:
         return x.clone()
     inputs = (x, delta, A, B, C, D)
-    if any(t.dtype in (torch.float16, torch.bfloat16) for t in inputs) or torch.is_autocast_enabled(x.device.type):
+    if any(t.dtype in (torch.float16, torch.bfloat16) for t in inputs) or _autocast_on(x.device.type):
         # mixed precision (autocast hands over some inputs in half precision): the scan and its
         # hand-written backward run in float32, with autocast off so that no matmul drops back
         with torch.autocast(x.device.type, enabled=False):
