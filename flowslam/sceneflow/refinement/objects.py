@@ -95,7 +95,10 @@ def _register(p: np.ndarray, src, box: np.ndarray, tgt, T: np.ndarray, c: Object
         if stage:
             landing = transform_points(T, p)
             reach = max_dist + FINE_STAGE_SLACK_M
-            target = _cloud(box[in_bounds(box, landing.min(axis=0) - reach, landing.max(axis=0) + reach)])
+            near = box[in_bounds(box, landing.min(axis=0) - reach, landing.max(axis=0) + reach)]
+            if len(near) == 0:  # nothing within reach: no correspondence, T stays (as onto the whole box)
+                continue
+            target = _cloud(near)
         T = np.asarray(reg.registration_icp(src, target, max_dist, T, reg.TransformationEstimationPointToPoint(),
                                             criteria).transformation).copy()
     return T
