@@ -39,12 +39,12 @@ MAX_GRID_CELLS = 64_000_000
 
 
 def in_bounds(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """(N,) bool: ``lo <= p <= hi`` on every axis (3-vectors, m). Column by column: 8x faster
-    than ``np.all(..., axis=1)`` over the (N,3) comparisons on 110k points (0.4 vs 3.2 ms)."""
-    inside = points[:, 0] >= lo[0]
+    """(N,) bool: ``lo <= p <= hi`` on every axis (``lo``, ``hi``: one bound per column of
+    ``points``, m). Column by column: 8x faster than ``np.all(..., axis=1)`` over the (N,3)
+    comparisons on 110k points (0.4 vs 3.2 ms)."""
+    inside = np.ones(len(points), dtype=bool)
     for axis in range(points.shape[1]):
-        if axis:
-            inside &= points[:, axis] >= lo[axis]
+        inside &= points[:, axis] >= lo[axis]
         inside &= points[:, axis] <= hi[axis]
     return inside
 

@@ -316,7 +316,7 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
     for _, _, core in grown:
         lo, hi = source[core, :2].min(axis=0) - reach, source[core, :2].max(axis=0) + reach
         band = by_x[np.searchsorted(x, lo[0]):np.searchsorted(x, hi[0], side="right")]
-        near.append(band[(source[band, 1] >= lo[1]) & (source[band, 1] <= hi[1])])
+        near.append(band[in_bounds(source[band, :2], lo, hi)])
     solid = np.unique(np.concatenate(near))  # sorted, as ``solid`` was
     if solid.size == 0:
         return
@@ -337,7 +337,7 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
             explained = _plane_distances(landing, surface, c) < c.score_plane_m
             if explained.mean() < c.min_fitness:
                 continue
-            ego_fit = _fit(_plane_distances(transform_points(T_ego, source[members]), surface, c), c)[0]
+            ego_fit = _score(source[members], T_ego, surface, c)[0]
             if ego_fit >= explained.mean() - c.static_preference:
                 continue  # the ego motion explains it as well: static structure next to the mover
             extra = explained & ~taken[members]
