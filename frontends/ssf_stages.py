@@ -390,7 +390,7 @@ class ObjectsStage:
         movers = seen = None
         if evidence.enabled:
             movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground)
-        above = ground.above(evidence.ground_clearance_m) if c.grow_max_extent_m > 0 else None  # for the growth only
+        above = ground.above(evidence.ground_clearance_m)  # road clusters and growth
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
                                  state.refined.target_tree, movers, seen, surface, above)
         accepted = np.array([o["accepted"] for o in objects.objects] + [False])  # [-1] -> False

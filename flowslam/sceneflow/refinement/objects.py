@@ -174,6 +174,19 @@ def _icp_subset(n: int, c: ObjectRefinementConfig) -> np.ndarray:
     return np.arange(n) if n <= c.max_icp_points else np.linspace(0, n - 1, c.max_icp_points).round().astype(np.int64)
 
 
+def _ego_explains(static_score: tuple[float, float], fitness: float, rmse: float, n: int,
+                  c: ObjectRefinementConfig) -> bool:
+    """Whether the ego motion (``static_score``: its fitness and inlier RMSE) explains an
+    object as well as the object's own ICP (``fitness``, ``rmse`` (m), measured on ``n``
+    points): its fitness is within ``static_preference`` of the ICP's (or within
+    ``static_preference_sigmas`` standard errors of a share of n points, if more: one point
+    of 15 is 0.067 of fitness) and its inlier RMSE at most ``static_rmse_ratio`` times the
+    ICP's + 5 mm."""
+    static_fitness, static_rmse = static_score
+    margin = max(c.static_preference, c.static_preference_sigmas * float(np.sqrt(fitness * (1.0 - fitness) / max(n, 1))))
+    return static_fitness >= fitness - margin and static_rmse <= c.static_rmse_ratio * rmse + 0.005
+
+
 def _principal_axis(points: np.ndarray) -> np.ndarray:
     """Unit principal axis (x, y, 0) of the BEV spread of (N,3) points."""
     xy = points[:, :2] - points[:, :2].mean(axis=0)
@@ -213,6 +226,9 @@ def refine_objects(
     (``hypotheses_m``), since free space says *that* they moved, not where to.
     ``surface``: a :class:`ScanSurface` of ``target`` to share (it must hold the target
     points within ``max_range_m + margin_m + 5`` m, horizontally); built here when not given.
+    ``above_ground`` (N,) bool: points clear of scan k-1's local ground; with it, clusters
+    with fewer than ``min_above_ground_points`` such points are road (static, no ICP) and
+    moving objects may grow (``grow_max_extent_m``).
     """
     from scipy.spatial import cKDTree
 
@@ -246,12 +262,20 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
                   above_ground: np.ndarray | None, c: ObjectRefinementConfig) -> ObjectRefinement:
     """One round of :func:`refine_objects` (its arguments, prepared; ``flow`` and ``dynamic``
     are updated in place and returned in the result)."""
-    near = np.einsum("ij,ij->i", source[:, :2], source[:, :2]) < c.max_range_m ** 2
-    cand = np.flatnonzero((dynamic & near) | movers)
+    range2 = np.einsum("ij,ij->i", source[:, :2], source[:, :2])
+    clear = range2 >= c.min_range_m ** 2  # beyond the ego vehicle's body
+    near = clear & (range2 < c.max_range_m ** 2)
+    cand = np.flatnonzero((dynamic & near) | (movers & clear))
     objects = []
     settled = np.zeros(len(source), dtype=bool)
     instance = np.full(len(source), -1, dtype=np.int64)
     clusters = _clusters(source, cand, c)
+    road = 0
+    if above_ground is not None and c.min_above_ground_points > 0:  # clusters flat on the ground: road
+        on_road = [int(np.count_nonzero(above_ground[idx])) < c.min_above_ground_points for idx in clusters]
+        for idx in (idx for idx, flat in zip(clusters, on_road) if flat):
+            flow[idx], dynamic[idx], settled[idx] = rigid_flow(T_ego, source[idx]), False, True
+        clusters, road = [idx for idx, flat in zip(clusters, on_road) if not flat], int(sum(on_road))
     grown = []  # (object, its motion, its dynamic points) to grow
     motion_of = np.full(len(source), -1, dtype=np.int64)  # index of the object motion a point took
     for idx, static_score in zip(clusters, _static_scores(source, clusters, T_ego, surface, c)):
@@ -287,6 +311,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
         "objects_accepted": sum(o["accepted"] for o in objects),
         "objects_dynamic": sum(1 for o in objects if o.get("speed_mps", 0.0) > c.dynamic_speed_mps),
         "relabelled_static": int(on_surface.sum()),
+        "road_clusters": road,
     }
     return ObjectRefinement(flow, dynamic, instance, objects, stats)
 
@@ -418,9 +443,8 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     record.update(fitness=fitness, rmse_m=rmse, icp_correction_m=moved_by)
     if fitness >= c.min_fitness and rmse <= c.max_rmse_m and moved_by <= c.max_correction_m:
         record["accepted"] = True
-        if not (static_fitness >= fitness - c.static_preference
-                and static_rmse <= c.static_rmse_ratio * rmse + 0.005):
-            motions.append(T)  # not explained as well by the ego motion
+        if not _ego_explains(static_score, fitness, rmse, min(len(p), c.max_icp_points), c):
+            motions.append(T)
     if mover_starts:  # the geometric movers alone, from shifted ego landings
         moving_part = p[sub][_icp_subset(int(sub.sum()), c)]
         Tm, fm, rm, _ = _best_icp(moving_part, box, tgt, surface, mover_starts + [T0], c)

@@ -1,0 +1,88 @@
+"""False movers of the objects stage found on real KITTI scans, rebuilt with exact geometry:
+a ring's arc on flat ground (point-to-point ICP slides it along its own circle), returns
+of the ego vehicle's body (they move with the sensor), and small objects whose ICP lands
+one point more than the ego motion. Real Open3D ICP, real SciPy KD-trees."""
+
+import numpy as np
+
+from flowslam import geometry
+from flowslam.config import ObjectRefinementConfig
+from flowslam.sceneflow.refinement.clusters import LocalGround
+from flowslam.sceneflow.refinement.objects import _ego_explains, refine_objects
+
+DT = 0.1
+HEIGHT = 1.73  # sensor above the flat ground (m)
+T_EGO = geometry.inv(geometry.from_euler("z", 0.0, t=[0.8, 0.0, 0.0]))  # T_{k,k-1}: 0.8 m forward
+
+
+def _rings(radii, azimuth_step_deg: float = 0.1) -> np.ndarray:
+    """Ground returns of a sensor HEIGHT above flat ground: full circles of these radii
+    (m), one point per azimuth step. On flat ground they are the same in every scan's
+    sensor frame, wherever the sensor is."""
+    az = np.radians(np.arange(-180.0, 180.0, azimuth_step_deg))
+    return np.concatenate([np.stack([r * np.cos(az), r * np.sin(az), np.full_like(az, -HEIGHT)], axis=1)
+                           for r in radii])
+
+
+def _above(points: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
+    ev = c.motion_evidence
+    return LocalGround(points, ev.ground_cell_m).above(ev.ground_clearance_m)
+
+
+def _refine(prev, curr, dynamic, **options):
+    c = ObjectRefinementConfig(**options)
+    flow = geometry.rigid_flow(T_EGO, prev)  # the network's flow: the ego motion's
+    return refine_objects(prev, flow, dynamic.copy(), curr, T_EGO, DT, c, above_ground=_above(prev, c))
+
+
+def test_an_arc_of_a_ground_ring_is_road_not_a_mover():
+    """KITTI: 1-m arcs of far ground rings flagged by the network were registered with
+    turns of up to 180 degrees (fitness 1, RMSE 0: the ring maps onto itself) and called
+    moving. Under the ego motion the arc lands between rings (no scan-k point within the
+    score distance), so the ego motion scores nothing."""
+    radii = [24.0, 31.0, 40.0, 52.0]
+    scan = _rings(radii)
+    az = np.degrees(np.arctan2(scan[:, 1], scan[:, 0]))
+    arc = (np.abs(np.hypot(scan[:, 0], scan[:, 1]) - 40.0) < 1e-6) & (az > 20.0) & (az < 22.5)
+    assert arc.sum() >= 20
+
+    default = _refine(scan, scan, arc)
+    assert not default.dynamic.any()
+    assert default.objects == [] and default.stats["road_clusters"] == 1
+    assert np.allclose(default.flow[arc], geometry.rigid_flow(T_EGO, scan[arc]))
+
+    without = _refine(scan, scan, arc, min_above_ground_points=0)  # the old behaviour
+    assert len(without.objects) == 1 and without.objects[0]["static_fitness"] == 0.0
+    assert without.dynamic[arc].all()  # the arc "moves"
+
+
+def _hood() -> np.ndarray:
+    """Returns of the ego vehicle's bonnet, 1.4-1.9 m ahead of the sensor: fixed in its frame."""
+    x, y = np.random.default_rng(3).random((2, 240))
+    return np.stack([1.4 + 0.5 * x, -0.6 + 1.2 * y, np.full(x.size, -0.6)], axis=1)
+
+
+def test_returns_of_the_ego_vehicle_body_are_not_objects():
+    hood = _hood()
+    scan = np.concatenate([_rings([8.0, 11.0, 15.0, 21.0]), hood])
+    body = np.arange(len(scan)) >= len(scan) - len(hood)
+
+    default = _refine(scan, scan, body)
+    assert default.objects == [] and np.all(default.instance == -1)
+
+    # (no ground is seen under the bonnet, so the road test would catch it too: off here)
+    without = _refine(scan, scan, body, min_range_m=0.0, min_above_ground_points=0)
+    moving = [o for o in without.objects if o.get("speed_mps", 0.0) > 0.5]
+    assert len(moving) == 1 and abs(moving[0]["speed_mps"] - 8.0) < 0.1  # it moves with the sensor
+
+
+def test_the_ego_motion_explains_an_object_within_the_noise_of_its_few_points():
+    c = ObjectRefinementConfig()  # static_preference 0.03, 2 standard errors, RMSE ratio 1.2
+    # 15 points: the ICP lands 13, the ego motion 12 -- one point, within 2 standard errors
+    assert _ego_explains((12 / 15, 0.025), 13 / 15, 0.033, 15, c)
+    assert not _ego_explains((12 / 15, 0.025), 13 / 15, 0.033, 15, c.model_copy(update={"static_preference_sigmas": 0.0}))
+    # 1000 points: the same shares are 7 standard errors apart, a real difference
+    assert not _ego_explains((0.80, 0.025), 0.867, 0.033, 1000, c)
+    # the RMSE test still applies: 0.029 > 1.2 x 0.019 + 0.005 = 0.0278
+    assert not _ego_explains((13 / 15, 0.029), 13 / 15, 0.019, 15, c)
+    assert _ego_explains((13 / 15, 0.027), 13 / 15, 0.019, 15, c)
