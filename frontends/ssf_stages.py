@@ -374,7 +374,7 @@ class ObjectsStage:
             object_target_range,
             refine_objects,
         )
-        from flowslam.sceneflow.refinement.visibility import geometric_movers
+        from flowslam.sceneflow.refinement.visibility import RangeImage, geometric_movers
 
         if not state.refinement_accepted:
             return
@@ -388,11 +388,12 @@ class ObjectsStage:
         flow = np.where(tracked[:, None], tracked_flow, state.flow)  # last pair's movers, moved on
         dynamic = ~state.static | tracked
         movers = seen = None
+        image = RangeImage(state.frame.points, evidence)  # free space in scan k, for both users
         if evidence.enabled:
-            movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground)
+            movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground, image)
         above = ground.above(evidence.ground_clearance_m)  # road clusters and growth
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
-                                 state.refined.target_tree, movers, seen, surface, above)
+                                 state.refined.target_tree, movers, seen, surface, above, image)
         accepted = np.array([o["accepted"] for o in objects.objects] + [False])  # [-1] -> False
         state.flow, state.static = objects.flow, ~objects.dynamic
         state.instance = np.where(accepted[objects.instance], objects.instance, -1)

@@ -208,6 +208,7 @@ def refine_objects(
     seen_through: np.ndarray | None = None,
     surface: ScanSurface | None = None,
     above_ground: np.ndarray | None = None,
+    range_image=None,
 ) -> ObjectRefinement:
     """Refine the flow of the candidate moving points of ``source`` (scan k-1) against
     ``target`` (scan k) given the ego motion ``T_ego`` = ``T_{k,k-1}`` (module doc), in at
@@ -228,7 +229,10 @@ def refine_objects(
     points within ``max_range_m + margin_m + 5`` m, horizontally); built here when not given.
     ``above_ground`` (N,) bool: points clear of scan k-1's local ground; with it, clusters
     with fewer than ``min_above_ground_points`` such points are road (static, no ICP) and
-    moving objects may grow (``grow_max_extent_m``).
+    moving objects may grow (``grow_max_extent_m``). ``range_image``: a
+    :class:`~flowslam.sceneflow.refinement.visibility.RangeImage` of ``target``; with it, an
+    object without geometric movers or seen-through points whose ego landing lies behind
+    something of scan k (``hidden_static_share``) stays static.
     """
     from scipy.spatial import cKDTree
 
@@ -240,7 +244,7 @@ def refine_objects(
     movers = np.zeros(len(source), dtype=bool) if movers is None else np.asarray(movers, dtype=bool)
     seen = np.zeros(len(source), dtype=bool) if seen_through is None else np.asarray(seen_through, dtype=bool)
     interval = dt if dt and dt > 0 else 0.1
-    scene = (source, T_ego, interval, target_tree, seen, surface, above_ground, c)
+    scene = (source, T_ego, interval, target_tree, seen, surface, above_ground, range_image, c)
     result = _refine_round(np.array(flow, dtype=np.float64), np.array(dynamic, dtype=bool), movers, *scene)
     changes = []
     while len(changes) + 1 < c.iterations:
@@ -259,7 +263,7 @@ def refine_objects(
 
 def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, source: np.ndarray, T_ego: np.ndarray,
                   interval: float, target_tree, seen: np.ndarray, surface: ScanSurface,
-                  above_ground: np.ndarray | None, c: ObjectRefinementConfig) -> ObjectRefinement:
+                  above_ground: np.ndarray | None, range_image, c: ObjectRefinementConfig) -> ObjectRefinement:
     """One round of :func:`refine_objects` (its arguments, prepared; ``flow`` and ``dynamic``
     are updated in place and returned in the result)."""
     range2 = np.einsum("ij,ij->i", source[:, :2], source[:, :2])
@@ -281,7 +285,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     for idx, static_score in zip(clusters, _static_scores(source, clusters, T_ego, surface, c)):
         own = instance[idx] = len(objects)
         record = _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
-                                static_score, c)
+                                static_score, c, range_image)
         motion = record.pop("motion", None)
         objects.append(record)
         if "result" in record:
@@ -413,7 +417,7 @@ def _target_box(surface: ScanSurface, guess: np.ndarray, ego: np.ndarray, reach:
 
 def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.ndarray, T_ego: np.ndarray,
                    interval: float, surface: ScanSurface, static_score: tuple[float, float],
-                   c: ObjectRefinementConfig) -> dict:
+                   c: ObjectRefinementConfig, range_image=None) -> dict:
     """Register one object (points ``p``, frame k-1; their flow; its geometric movers ``sub``
     and seen-through points; its ``static_score``, :func:`_score` under ``T_ego``) to scan k,
     ``interval`` (s) after. Returns its record; an accepted one also holds ``result``:
@@ -422,7 +426,10 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     ego = transform_points(T_ego, p)  # where the points land if they are static
     record = {"points": int(len(p)), "static_fitness": static_fitness, "static_rmse_m": static_rmse,
               "accepted": False}
-    if static_fitness >= c.static_fitness_accept and static_rmse <= c.static_accept_rmse_m:  # static: skip the ICP
+    hidden = (range_image is not None and c.hidden_static_share <= 1 and not sub.any() and not seen.any()
+              and float(range_image.sees_in_front(ego).mean()) >= c.hidden_static_share)
+    if hidden or (static_fitness >= c.static_fitness_accept and static_rmse <= c.static_accept_rmse_m):  # static: skip the ICP
+        record["hidden"] = hidden
         record.update(accepted=True, speed_mps=0.0,
                       result=(ego, np.zeros(len(p), dtype=bool), np.full(len(p), -1, dtype=np.int64)))
         return record

@@ -63,6 +63,17 @@ class RangeImage:
         ie = np.floor((el - self.el0) / c.elevation_resolution_deg).astype(np.int64)
         return ie, ia
 
+    def sees_in_front(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: in the window around each point's direction some bin has a return
+        clearly nearer than the point: something in this scan stands in front of where the
+        point is (it may be hidden)."""
+        c = self.config
+        az, el, r = spherical(np.asarray(points, dtype=np.float64))
+        ie, ia = self._bins(az, el)
+        inside = (ie >= 0) & (ie < self.n_el)
+        ie = np.clip(ie, 0, self.n_el - 1)
+        return inside & (self.window_min[ie, ia] < r - c.margin_m - c.relative_margin * r)
+
     def sees_beyond(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool: in the window around each point's direction (sensor frame of this scan)
         at least one bin has a return and every return lies clearly beyond the point."""
@@ -82,13 +93,15 @@ def geometric_movers(
     config: MotionEvidenceConfig | None = None,
     surface: ScanSurface | None = None,
     ground: LocalGround | None = None,
+    range_image: RangeImage | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(movers, seen_through): (N,) bool masks over ``source`` (module doc).
 
     ``surface``: a :class:`ScanSurface` of ``target`` to share (it must hold every target
     point within ``max_range_m + off_surface_m`` of the sensor, horizontally, plus the ego
     motion); ``ground``: the :class:`LocalGround` of all of ``source`` (with a cell of
-    ``ground_cell_m``) to share. Either is built here when not given."""
+    ``ground_cell_m``) to share; ``range_image``: the :class:`RangeImage` of ``target``
+    with ``config``. Each is built here when not given."""
     c = config or MotionEvidenceConfig()
     movers = np.zeros(len(source), dtype=bool)
     seen = np.zeros(len(source), dtype=bool)
@@ -103,7 +116,7 @@ def geometric_movers(
     near, x = near[off], x[off]
     if near.size == 0:
         return movers, seen
-    seen[near] = RangeImage(target, c).sees_beyond(x)
+    seen[near] = (range_image or RangeImage(target, c)).sees_beyond(x)
     labels = bev_clusters(source[near], c.cluster_cell_m)
     counts = np.bincount(labels)
     seeds = np.bincount(labels, weights=seen[near].astype(np.float64), minlength=len(counts))
