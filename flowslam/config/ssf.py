@@ -211,15 +211,6 @@ class ObjectRefinementConfig(StrictModel):
     on scan k's surface than the ego motion is no evidence of motion (real KITTI frames
     0-15: 30 of 151 moving objects, held-out sim `dt` 126: 1 of 71 true movers,
     docs/sceneflow_evaluation.md). 0: the fixed ``static_preference`` alone."""
-    hidden_static_share: float = Field(1.01, ge=0, le=1.01)
-    """Opt-in (> 1: never, the default): an object with no geometric movers and no
-    seen-through points (no free space where it was) is static, without an ICP, when at
-    least this share of its ego landings lies behind something of scan k
-    (``RangeImage.sees_in_front``): scan k hides it, so its static fit is low for lack of
-    returns, not because it moved. 0.7 takes the simulated ``static`` scenes from
-    0.18-0.26 % of points called dynamic to 0.07-0.13 %, but in crowds a walker hidden
-    behind another is a mover too (``rush-hour`` Dynamic IoU 0.79-0.83 -> 0.73-0.79), so
-    it is off by default (docs/sceneflow_evaluation.md)."""
     static_rmse_ratio: float = Field(1.2, ge=1)
     """... and its inlier RMSE at most this times the ICP's (+ 5 mm) ..."""
     static_fitness_accept: float = Field(0.9, ge=0, le=1.01)
@@ -231,6 +222,15 @@ class ObjectRefinementConfig(StrictModel):
     per scan: under the ego motion nearly all its points stay within ``score_plane_m`` of
     scan k, but 4-5 cm off it (static patches of real KITTI scans: median 2.7 cm); such an
     object gets its ICP."""
+    hidden_static_share: float = Field(1.01, ge=0, le=1.01)
+    """Opt-in (> 1: never, the default): an object with no geometric movers and no
+    seen-through points (no free space where it was) is static, without an ICP, when at
+    least this share of its ego landings lies behind something of scan k
+    (``RangeImage.sees_in_front``): scan k hides it, so its static fit is low for lack of
+    returns, not because it moved. 0.7 takes the simulated ``static`` scenes from
+    0.18-0.26 % of points called dynamic to 0.07-0.13 %, but in crowds a walker hidden
+    behind another is a mover too (``rush-hour`` Dynamic IoU 0.79-0.83 -> 0.73-0.79), so
+    it is off by default (docs/sceneflow_evaluation.md)."""
     track_radius_m: float = Field(0.15, ge=0)
     """Points of the next scan this close to a mover's landing spot become candidates
     (mover tracking; 0: no carry-over)."""
