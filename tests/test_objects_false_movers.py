@@ -124,3 +124,31 @@ def test_an_object_that_scan_k_hides_stays_static_with_the_opt_in_test():
     without = run().dynamic[flagged]  # the default: no such test, (part of) it moves
     assert without.mean() > 0.5  # (measured 0.82: the parts its ICP put on the ground)
     assert np.allclose(T_world_k @ np.append(curr[0], 1.0), np.append(ground[0], 1.0))
+
+
+def test_an_object_hidden_by_a_possible_mover_is_not_made_static():
+    """The same box, hidden in scan k behind a slab that the network flagged in scan k-1
+    and moved 0.5 m towards where it hides the box: the occluder may be a mover (a walker in
+    a crowd), so the hidden-object test does not apply and the box gets its ICP."""
+    rng = np.random.default_rng(5)
+    box = np.concatenate([_surface([0, 2, 0], [0, 0, 1.5], [15.0, 4.0, -HEIGHT], 0.05, rng),
+                          _surface([2, 0, 0], [0, 0, 1.5], [15.0, 4.0, -HEIGHT], 0.05, rng)])
+    slab_prev = _surface([0, 6, 0], [0, 0, 3.0], [10.0, 2.0, -HEIGHT], 0.04, rng)
+    ground = _surface([40, 0, 0], [0, 16, 0], [-5.0, -8.0, -HEIGHT - 0.01], 0.15, rng)
+    prev = np.concatenate([ground, box, slab_prev])
+    curr = geometry.transform_points(T_EGO, np.concatenate([ground, slab_prev + [0.5, 0.0, 0.0]]))
+    flagged = np.arange(len(prev)) >= len(ground)
+    flow = geometry.rigid_flow(T_EGO, prev)
+    flow[flagged] += [0.5, 0.0, 0.0]
+    c = ObjectRefinementConfig(hidden_static_share=0.7)
+    from flowslam.sceneflow.refinement.visibility import RangeImage
+
+    image = RangeImage(curr, c.motion_evidence)
+    result = refine_objects(prev, flow, flagged.copy(), curr, T_EGO, DT, c, above_ground=_above(prev, c),
+                            range_image=image)
+    assert len(result.objects) >= 1 and not any(o.get("hidden", False) for o in result.objects)
+    # with any return counting as an occluder (hidden_occluder_m 0) the test would apply
+    any_return = refine_objects(prev, flow, flagged.copy(), curr, T_EGO, DT,
+                                c.model_copy(update={"hidden_occluder_m": 0.0}), above_ground=_above(prev, c),
+                                range_image=image)
+    assert any(o.get("hidden", False) for o in any_return.objects)

@@ -187,6 +187,19 @@ def _ego_explains(static_score: tuple[float, float], fitness: float, rmse: float
     return static_fitness >= fitness - margin and static_rmse <= c.static_rmse_ratio * rmse + 0.005
 
 
+def _hidden_share(ego: np.ndarray, range_image, guesses, c: ObjectRefinementConfig) -> float:
+    """Share of an object's ego landings ``ego`` (frame k) that scan k hides behind
+    something static: a return clearly in front of them whose position is not within
+    ``hidden_occluder_m`` of a candidate's input-flow landing (``guesses``, a KD-tree, or
+    None: any return counts). A walker hidden by another walker, or a car hidden by its
+    own new surface, is hidden by a possible mover."""
+    front, where = range_image.in_front(ego)
+    if guesses is not None and front.any():
+        near = np.isfinite(guesses.query(where[front], distance_upper_bound=c.hidden_occluder_m)[0])
+        front[np.flatnonzero(front)[near]] = False
+    return float(front.mean()) if len(front) else 0.0
+
+
 def _principal_axis(points: np.ndarray) -> np.ndarray:
     """Unit principal axis (x, y, 0) of the BEV spread of (N,3) points."""
     xy = points[:, :2] - points[:, :2].mean(axis=0)
@@ -274,6 +287,11 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     settled = np.zeros(len(source), dtype=bool)
     instance = np.full(len(source), -1, dtype=np.int64)
     clusters = _clusters(source, cand, c)
+    guesses = None  # where the candidates land by their input flow: scan k's possible movers
+    if range_image is not None and c.hidden_static_share <= 1 and c.hidden_occluder_m > 0 and cand.size:
+        from scipy.spatial import cKDTree
+
+        guesses = cKDTree(source[cand] + flow[cand])
     road = 0
     if above_ground is not None and c.min_above_ground_points > 0:  # clusters flat on the ground: road
         on_road = [int(np.count_nonzero(above_ground[idx])) < c.min_above_ground_points for idx in clusters]
@@ -285,7 +303,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     for idx, static_score in zip(clusters, _static_scores(source, clusters, T_ego, surface, c)):
         own = instance[idx] = len(objects)
         record = _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
-                                static_score, c, range_image)
+                                static_score, c, range_image, guesses)
         motion = record.pop("motion", None)
         objects.append(record)
         if "result" in record:
@@ -417,7 +435,7 @@ def _target_box(surface: ScanSurface, guess: np.ndarray, ego: np.ndarray, reach:
 
 def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.ndarray, T_ego: np.ndarray,
                    interval: float, surface: ScanSurface, static_score: tuple[float, float],
-                   c: ObjectRefinementConfig, range_image=None) -> dict:
+                   c: ObjectRefinementConfig, range_image=None, guesses=None) -> dict:
     """Register one object (points ``p``, frame k-1; their flow; its geometric movers ``sub``
     and seen-through points; its ``static_score``, :func:`_score` under ``T_ego``) to scan k,
     ``interval`` (s) after. Returns its record; an accepted one also holds ``result``:
@@ -427,7 +445,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     record = {"points": int(len(p)), "static_fitness": static_fitness, "static_rmse_m": static_rmse,
               "accepted": False}
     hidden = (range_image is not None and c.hidden_static_share <= 1 and not sub.any() and not seen.any()
-              and float(range_image.sees_in_front(ego).mean()) >= c.hidden_static_share)
+              and _hidden_share(ego, range_image, guesses, c) >= c.hidden_static_share)
     if hidden or (static_fitness >= c.static_fitness_accept and static_rmse <= c.static_accept_rmse_m):  # static: skip the ICP
         record["hidden"] = hidden
         record.update(accepted=True, speed_mps=0.0,

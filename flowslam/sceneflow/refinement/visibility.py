@@ -67,12 +67,21 @@ class RangeImage:
         """(N,) bool: in the window around each point's direction some bin has a return
         clearly nearer than the point: something in this scan stands in front of where the
         point is (it may be hidden)."""
+        return self.in_front(points)[0]
+
+    def in_front(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(:meth:`sees_in_front` (N,) bool, (N,3) where the nearest return of each point's
+        window stands: on the point's own ray at that return's range, m)."""
         c = self.config
-        az, el, r = spherical(np.asarray(points, dtype=np.float64))
+        points = np.asarray(points, dtype=np.float64)
+        az, el, r = spherical(points)
         ie, ia = self._bins(az, el)
         inside = (ie >= 0) & (ie < self.n_el)
         ie = np.clip(ie, 0, self.n_el - 1)
-        return inside & (self.window_min[ie, ia] < r - c.margin_m - c.relative_margin * r)
+        nearest = self.window_min[ie, ia]
+        front = inside & (nearest < r - c.margin_m - c.relative_margin * r)
+        where = points * (np.where(front, nearest, r) / np.maximum(r, 1e-9))[:, None]
+        return front, where
 
     def sees_beyond(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool: in the window around each point's direction (sensor frame of this scan)
