@@ -388,7 +388,8 @@ class ObjectsStage:
         flow = np.where(tracked[:, None], tracked_flow, state.flow)  # last pair's movers, moved on
         dynamic = ~state.static | tracked
         movers = seen = None
-        image = RangeImage(state.frame.points, evidence)  # free space in scan k, for both users
+        # free space in scan k, for the movers' test and the (opt-in) hidden-object test
+        image = RangeImage(state.frame.points, evidence) if evidence.enabled or c.hidden_static_share <= 1 else None
         if evidence.enabled:
             movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground, image)
         above = ground.above(evidence.ground_clearance_m)  # road clusters and growth

@@ -4,14 +4,18 @@ After the ego motion ``T_{k,k-1}`` is refined (:mod:`flowslam.sceneflow.refineme
 *candidate* moving points of scan ``k-1`` -- the network's dynamic points, the movers of
 the previous pair carried on (:class:`~flowslam.sceneflow.refinement.tracking.MoverPrior`) and the geometric movers
 (:func:`flowslam.sceneflow.refinement.visibility.geometric_movers`) -- are grouped into objects by
-connected components on a bird's-eye-view grid (``cluster_cell_m``). Each object with at least ``min_points``
+connected components on a bird's-eye-view grid (``cluster_cell_m``); points nearer than
+``min_range_m`` (the ego vehicle's own body) are never candidates, and a cluster with
+fewer than ``min_above_ground_points`` points above the local ground is road (static, no
+ICP: a ring's arc on flat ground slides along itself under ICP). Each object with at least ``min_points``
 points is registered to scan ``k`` by point-to-point ICP (Open3D, coarse-to-fine
 correspondence distances), starting from the ego rotation and the median network
 displacement of its points. Accepted objects (ICP fitness and RMSE within bounds)
 get the rigid flow of their own motion -- or of the ego motion when that explains the
 object's points about as well (fitness within ``static_preference``, RMSE within
-``static_rmse_ratio``) or well enough (``static_fitness_accept``: structures that ICP can
-slide along) -- and are labelled dynamic when that motion
+``static_rmse_ratio``; the fitness margin is at least ``static_preference_sigmas`` standard
+errors of a share of the object's points) or well enough (``static_fitness_accept``:
+structures that ICP can slide along) -- and are labelled dynamic when that motion
 moves their points faster than ``dynamic_speed_mps`` relative to the ego-motion flow,
 static otherwise. Objects holding geometric movers also start ICP from the ego landing
 shifted along their axis (``hypotheses_m``), and their movers get an ICP of their own
