@@ -389,7 +389,7 @@ class ObjectsStage:
         dynamic = ~state.static | tracked
         movers = seen = None
         # free space in scan k, for the movers' test and the (opt-in) hidden-object test
-        image = RangeImage(state.frame.points, evidence) if evidence.enabled or c.hidden_static_share <= 1 else None
+        image = RangeImage(state.frame.points, evidence) if evidence.enabled or c.hidden_test else None
         if evidence.enabled:
             movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground, image)
         above = ground.above(evidence.ground_clearance_m)  # road clusters and growth

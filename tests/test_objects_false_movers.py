@@ -113,7 +113,7 @@ def test_an_object_that_scan_k_hides_stays_static_with_the_opt_in_test():
     from flowslam.sceneflow.refinement.visibility import RangeImage
 
     image = RangeImage(curr, c.motion_evidence)
-    assert image.sees_in_front(geometry.transform_points(T_EGO, box)).mean() > 0.9
+    assert image.in_front(geometry.transform_points(T_EGO, box))[0].mean() > 0.9
     flow = geometry.rigid_flow(T_EGO, prev)
     flow[flagged] += [0.5, 0.0, 0.0]  # the network's guess: it moves
     run = lambda **o: refine_objects(prev, flow, flagged.copy(), curr, T_EGO, DT, ObjectRefinementConfig(**o),

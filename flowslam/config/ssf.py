@@ -236,6 +236,11 @@ class ObjectRefinementConfig(StrictModel):
     """... counting only the landings hidden by a return farther than this from every
     candidate's input-flow landing (a static occluder, not a walker in front or the
     object's own new surface); 0: any return."""
+
+    @property
+    def hidden_test(self) -> bool:
+        """Whether the hidden-object test runs (``hidden_static_share`` at most 1)."""
+        return self.hidden_static_share <= 1
     track_radius_m: float = Field(0.15, ge=0)
     """Points of the next scan this close to a mover's landing spot become candidates
     (mover tracking; 0: no carry-over)."""

@@ -292,7 +292,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     instance = np.full(len(source), -1, dtype=np.int64)
     clusters = _clusters(source, cand, c)
     guesses = None  # where the candidates land by their input flow: scan k's possible movers
-    if range_image is not None and c.hidden_static_share <= 1 and c.hidden_occluder_m > 0 and cand.size:
+    if range_image is not None and c.hidden_test and c.hidden_occluder_m > 0 and cand.size:
         from scipy.spatial import cKDTree
 
         guesses = cKDTree(source[cand] + flow[cand])
@@ -448,9 +448,10 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     ego = transform_points(T_ego, p)  # where the points land if they are static
     record = {"points": int(len(p)), "static_fitness": static_fitness, "static_rmse_m": static_rmse,
               "accepted": False}
-    hidden = (range_image is not None and c.hidden_static_share <= 1 and not sub.any() and not seen.any()
+    fits = static_fitness >= c.static_fitness_accept and static_rmse <= c.static_accept_rmse_m
+    hidden = (not fits and range_image is not None and c.hidden_test and not sub.any() and not seen.any()
               and _hidden_share(ego, range_image, guesses, c) >= c.hidden_static_share)
-    if hidden or (static_fitness >= c.static_fitness_accept and static_rmse <= c.static_accept_rmse_m):  # static: skip the ICP
+    if fits or hidden:  # static: skip the ICP
         record["hidden"] = hidden
         record.update(accepted=True, speed_mps=0.0,
                       result=(ego, np.zeros(len(p), dtype=bool), np.full(len(p), -1, dtype=np.int64)))

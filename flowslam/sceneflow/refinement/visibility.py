@@ -63,22 +63,23 @@ class RangeImage:
         ie = np.floor((el - self.el0) / c.elevation_resolution_deg).astype(np.int64)
         return ie, ia
 
-    def sees_in_front(self, points: np.ndarray) -> np.ndarray:
-        """(N,) bool: in the window around each point's direction some bin has a return
-        clearly nearer than the point: something in this scan stands in front of where the
-        point is (it may be hidden)."""
-        return self.in_front(points)[0]
-
-    def in_front(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(:meth:`sees_in_front` (N,) bool, (N,3) where the nearest return of each point's
-        window stands: on the point's own ray at that return's range, m)."""
-        c = self.config
-        points = np.asarray(points, dtype=np.float64)
-        az, el, r = spherical(points)
+    def _lookup(self, points: np.ndarray):
+        """(range (N,), nearest return in each point's window (N,), whether that window has any
+        return (N,), whether the point's direction lies within the image's elevations (N,))."""
+        az, el, r = spherical(np.asarray(points, dtype=np.float64))
         ie, ia = self._bins(az, el)
         inside = (ie >= 0) & (ie < self.n_el)
         ie = np.clip(ie, 0, self.n_el - 1)
-        nearest = self.window_min[ie, ia]
+        return r, self.window_min[ie, ia], self.window_known[ie, ia], inside
+
+    def in_front(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """((N,) bool: in the window around each point's direction some bin has a return
+        clearly nearer than the point -- something of this scan stands in front of where the
+        point is, which may hide it; (N,3) where that nearest return stands: on the point's
+        own ray at its range, m)."""
+        points = np.asarray(points, dtype=np.float64)
+        c = self.config
+        r, nearest, _, inside = self._lookup(points)
         front = inside & (nearest < r - c.margin_m - c.relative_margin * r)
         where = points * (np.where(front, nearest, r) / np.maximum(r, 1e-9))[:, None]
         return front, where
@@ -87,12 +88,8 @@ class RangeImage:
         """(N,) bool: in the window around each point's direction (sensor frame of this scan)
         at least one bin has a return and every return lies clearly beyond the point."""
         c = self.config
-        az, el, r = spherical(np.asarray(points, dtype=np.float64))
-        ie, ia = self._bins(az, el)
-        inside = (ie >= 0) & (ie < self.n_el)
-        ie = np.clip(ie, 0, self.n_el - 1)
-        beyond = self.window_min[ie, ia] > r + c.margin_m + c.relative_margin * r
-        return inside & self.window_known[ie, ia] & beyond
+        r, nearest, known, inside = self._lookup(points)
+        return inside & known & (nearest > r + c.margin_m + c.relative_margin * r)
 
 
 def geometric_movers(
