@@ -174,7 +174,7 @@ def plane_normals(tree, points: np.ndarray, idx: np.ndarray, radius: float, k: i
     pts = points[np.where(valid, nb, 0)] * valid[..., None]
     n = valid.sum(axis=1).astype(np.float64)
     mean = pts.sum(axis=1) / n[:, None]
-    cov = np.einsum("mki,mkj->mij", pts, pts) / n[:, None, None] - np.einsum("mi,mj->mij", mean, mean)
+    cov = np.matmul(pts.transpose(0, 2, 1), pts) / n[:, None, None] - mean[:, :, None] * mean[:, None, :]
     normals = smallest_eigenvectors(cov, symmetric_eigenvalues(cov)[:, 0])
     normals[n < 3] = np.nan
     return normals

@@ -475,12 +475,13 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         record["accepted"] = True
         if not _ego_explains(static_score, fitness, rmse, min(len(p), c.max_icp_points), c):
             motions.append(T)
-    if mover_starts:  # the geometric movers alone, from shifted ego landings
-        moving_part = p[sub][_icp_subset(int(sub.sum()), c)]
+    moving_part = p[sub][_icp_subset(int(sub.sum()), c)] if mover_starts else None
+    joint_on_movers = _score(moving_part, motions[0], surface, c)[0] if mover_starts and motions else 0.0
+    # the geometric movers alone, from shifted ego landings -- only when the object's own ICP
+    # does not already explain them (no fitness, at most 1, can then beat its by static_preference)
+    if mover_starts and joint_on_movers + c.static_preference < 1.0:
         Tm, fm, rm, _ = _best_icp(moving_part, box, tgt, surface, mover_starts + [T0], c)
-        joint_on_movers = _score(moving_part, motions[0], surface, c)[0] if motions else 0.0
         record.update(mover_fitness=fm, mover_rmse_m=rm)
-        # only when the object's own ICP does not already explain its movers
         if fm >= c.min_fitness and rm <= c.max_rmse_m and fm > joint_on_movers + c.static_preference:
             record["accepted"] = True
             motions.append(Tm)
