@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 from flowslam import geometry
 from flowslam.frame import Frame
 from flowslam.interfaces import FrontendOutput
-from flowslam.mapping import MapCloud, StaticMapBuilder, poses_by_index, voxel_downsample, write_point_cloud
+from flowslam.mapping import MapCloud, StaticMapBuilder, group_keys, poses_by_index, voxel_downsample, write_point_cloud
 
 from test_flow_odometry import street_scene
 from test_ground_truth_frontends import synthetic_sequence
@@ -24,6 +24,17 @@ def test_voxel_downsample_centroids():
     assert len(out) == 3
     assert any(np.allclose(o, [0.05, 0.05, 0.05]) for o in out)
     assert voxel_downsample(np.zeros((0, 3)), 0.2).shape == (0, 3)
+
+
+def test_group_keys_numbers_groups_in_key_order_like_np_unique():
+    inverse, counts = group_keys(np.array([7, -2, 7, 3, -2, 7], dtype=np.int64))
+    assert inverse.tolist() == [2, 0, 2, 1, 0, 2] and counts.tolist() == [2, 1, 3]
+    rng = np.random.default_rng(3)
+    runs = np.repeat(rng.integers(-50, 50, 400), rng.integers(1, 6, 400))  # scans leave runs of equal keys
+    for keys in (runs, rng.integers(0, 1 << 40, 5000), np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int64)):
+        _, inv, cnt = np.unique(keys.astype(np.int64), return_inverse=True, return_counts=True)
+        got_inv, got_cnt = group_keys(keys.astype(np.int64))
+        assert np.array_equal(got_inv, inv.reshape(-1)) and np.array_equal(got_cnt, cnt)
 
 
 def test_static_scene_from_two_poses_coincides_and_dynamic_points_are_absent():
