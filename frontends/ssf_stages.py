@@ -367,6 +367,10 @@ class ObjectsStage:
 
         self.options = config.objects
         self.movers = MoverPrior(self.options.track_radius_m)
+        self._images: dict[int, object] = {}
+        """Range images of the last scans by index: the older scans' free space for
+        :func:`~flowslam.sceneflow.refinement.visibility.slow_movers` (each scan's image is
+        built once, when it is scan k)."""
 
     def run(self, state: PairState) -> None:
         from flowslam.sceneflow.refinement.clusters import LocalGround, ScanSurface
@@ -374,7 +378,7 @@ class ObjectsStage:
             object_target_range,
             refine_objects,
         )
-        from flowslam.sceneflow.refinement.visibility import RangeImage, geometric_movers
+        from flowslam.sceneflow.refinement.visibility import RangeImage, geometric_movers, slow_movers
 
         if not state.refinement_accepted:
             return
@@ -392,6 +396,7 @@ class ObjectsStage:
         image = RangeImage(state.frame.points, evidence) if evidence.enabled or c.hidden_test else None
         if evidence.enabled:
             movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground, image)
+            movers |= self._slow_movers(state, image, ground)
         above = ground.above(evidence.ground_clearance_m)  # road clusters and growth
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
                                  state.refined.target_tree, movers, seen, surface, above, image)
@@ -400,6 +405,25 @@ class ObjectsStage:
         state.instance = np.where(accepted[objects.instance], objects.instance, -1)
         self.movers.update(prev, objects.flow, objects.dynamic, T_ego, ground)
         state.stats.update(objects.stats, tracked_candidates=int(tracked.sum()))
+
+    def _slow_movers(self, state: PairState, image, ground) -> np.ndarray:
+        """:func:`~flowslam.sceneflow.refinement.visibility.slow_movers` of scan k-1 against the
+        scan ``baseline_scans`` older in the network's window (the oldest it holds), placed
+        with the frontend's own poses; ``image``: scan k's range image, kept for later pairs."""
+        from flowslam.sceneflow.refinement.visibility import RangeImage, slow_movers
+
+        evidence, history = self.options.motion_evidence, state.history
+        self._images = {i: im for i, im in self._images.items() if i >= state.frame.index - evidence.baseline_scans - 1}
+        self._images[state.frame.index] = image
+        back = min(evidence.baseline_scans, len(history) - 1)  # history ends with scan k-1
+        if back < 1:
+            return np.zeros(len(state.prev.points), dtype=bool)
+        old = history[-1 - back]
+        old_image = self._images.get(old.index)
+        if old_image is None:  # a scan this stage did not see as scan k (a run's first scans, a retry)
+            old_image = RangeImage(old.points, evidence)
+        T_old_prev = geometry.inv(state.history_poses[-1 - back]) @ state.history_poses[-1]
+        return slow_movers(state.prev.points, T_old_prev, old_image, evidence, ground)
 
 
 class RigidStaticFlowStage:

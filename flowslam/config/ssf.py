@@ -129,6 +129,12 @@ class MotionEvidenceConfig(StrictModel):
     """... and clusters with fewer seen-through points."""
     max_extent_m: float = Field(12.0, gt=0)
     """... and clusters whose BEV extent (diagonal) exceeds this (walls, not vehicles)."""
+    baseline_scans: int = Field(3, ge=0)
+    """Slow movers: the points of scan k-1 are also tested against the scan this many scans
+    older (from the network's window, placed with the frontend's own poses): a cluster of
+    at least ``min_points`` points where that scan sees through is a candidate object.
+    Walkers and slow cars (5-10 cm per scan) never leave scan k's surface in one step,
+    but do in a few. 0: off; more than the window holds: the oldest scan in it."""
 
 
 class ObjectRefinementConfig(StrictModel):

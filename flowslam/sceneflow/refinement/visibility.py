@@ -13,6 +13,9 @@ point then lies on a surface of scan ``k``, or behind one (occluded). Two tests:
 :func:`geometric_movers` groups the non-ground points that are off surface into BEV
 connected components and keeps those that hold enough seen-through points: moving
 objects found by geometry alone, which the learned segmentation may have missed.
+:func:`slow_movers` applies the free-space test against an older scan instead of scan
+``k``: what moves a few centimetres per scan leaves no surface in one step, but an older
+scan's free space after a few.
 
 Frames: ``source`` in sensor frame ``k-1``, ``target`` in sensor frame ``k``,
 ``T_ego`` = ``T_{k,k-1}``; metres and degrees.
@@ -25,7 +28,7 @@ from flowslam.config.ssf import MotionEvidenceConfig
 from flowslam.geometry import transform_points
 from flowslam.sceneflow.refinement.clusters import LocalGround, ScanSurface, above_ground, bev_clusters, bev_extent
 
-__all__ = ["RangeImage", "spherical", "geometric_movers"]
+__all__ = ["RangeImage", "spherical", "geometric_movers", "slow_movers"]
 
 
 
@@ -130,6 +133,38 @@ def geometric_movers(
     kept[kept] = bev_extent(source[near, :2], labels, len(counts))[kept] <= c.max_extent_m
     movers[near[kept[labels]]] = True
     return movers, seen
+
+
+def slow_movers(
+    source: np.ndarray,
+    T_old_source: np.ndarray,
+    old_image: RangeImage,
+    config: MotionEvidenceConfig | None = None,
+    ground: LocalGround | None = None,
+) -> np.ndarray:
+    """(N,) bool over ``source`` (scan k-1): points of BEV clusters of at least ``min_points``
+    non-ground points (within ``max_range_m``, extent at most ``max_extent_m``) where an older
+    scan sees through them. ``T_old_source`` maps ``source`` into that scan's sensor frame
+    (the frontend's own poses); ``old_image``: its :class:`RangeImage` with ``config``.
+
+    Free space in the older scan where a point of scan k-1 is now means that something
+    arrived there since: an object moving too slowly to leave scan k's surface in one step
+    (the off-surface test of :func:`geometric_movers`) has left the older scan's free space
+    after a few. Only these points are flagged (not seen-through): they become candidates,
+    and their own ICP decides (``ground``: as in :func:`geometric_movers`)."""
+    c = config or MotionEvidenceConfig()
+    flagged = np.zeros(len(source), dtype=bool)
+    near = np.flatnonzero(np.einsum("ij,ij->i", source[:, :2], source[:, :2]) < c.max_range_m ** 2)
+    near = near[_above_ground(source, near, c, ground)]
+    near = near[old_image.sees_beyond(transform_points(T_old_source, source[near]))]
+    if near.size == 0:
+        return flagged
+    labels = bev_clusters(source[near], c.cluster_cell_m)
+    counts = np.bincount(labels)
+    kept = counts >= c.min_points
+    kept[kept] = bev_extent(source[near, :2], labels, len(counts))[kept] <= c.max_extent_m
+    flagged[near[kept[labels]]] = True
+    return flagged
 
 
 def _above_ground(source: np.ndarray, idx: np.ndarray, c: MotionEvidenceConfig, ground: LocalGround | None) -> np.ndarray:

@@ -1,0 +1,107 @@
+"""Slow movers: free space in an older scan where a point of scan k-1 is now.
+
+A walker moving 15 cm per scan never leaves scan k's surface in one step (the off-surface
+test needs 25 cm), but three scans earlier the sensor saw the wall behind the place where
+the walker now stands. Built with exact geometry (surfaces sampled densely enough that
+every range-image bin has returns); the ego vehicle moves, and the older scan is placed
+with the frontend's own poses."""
+
+import numpy as np
+
+from flowslam import geometry
+from flowslam.config import SsfConfig
+from flowslam.config.ssf import MotionEvidenceConfig
+from flowslam.frame import Frame
+from flowslam.sceneflow.refinement.visibility import RangeImage, slow_movers
+
+HEIGHT = 1.73
+STEP = 0.8  # ego motion per scan, forward (m)
+
+
+def _grid(lo, hi, step=0.03) -> np.ndarray:
+    """Points on an axis-aligned box face or plane from ``lo`` to ``hi`` (one of the three
+    extents zero), every ``step`` metres."""
+    axes = [np.arange(a, b + 1e-9, step) if b > a else np.array([a]) for a, b in zip(lo, hi)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def _box(centre_xy, size=(0.4, 0.4, 1.6)) -> np.ndarray:
+    """The four vertical faces of a box standing on the ground (world frame, m)."""
+    (cx, cy), (sx, sy, sz) = centre_xy, size
+    z0, z1 = -HEIGHT + 0.05, -HEIGHT + sz
+    return np.concatenate([
+        _grid((cx - sx / 2, cy - sy / 2, z0), (cx - sx / 2, cy + sy / 2, z1)),
+        _grid((cx + sx / 2, cy - sy / 2, z0), (cx + sx / 2, cy + sy / 2, z1)),
+        _grid((cx - sx / 2, cy - sy / 2, z0), (cx + sx / 2, cy - sy / 2, z1)),
+        _grid((cx - sx / 2, cy + sy / 2, z0), (cx + sx / 2, cy + sy / 2, z1)),
+    ])
+
+
+def _world(walker_y: float) -> np.ndarray:
+    """World points (world = the older scan's sensor frame): a wall 14 m ahead, a pillar, the
+    walker at (10, walker_y), the ground."""
+    wall = _grid((14.0, -4.0, -HEIGHT), (14.0, 4.0, 1.0))
+    ground = _grid((-4.0, -5.0, -HEIGHT), (16.0, 5.0, -HEIGHT), step=0.25)
+    return np.concatenate([wall, _box((10.0, -2.0)), _box((10.0, walker_y)), ground])
+
+
+def _scan(world: np.ndarray, T_world_sensor: np.ndarray) -> np.ndarray:
+    return geometry.transform_points(geometry.inv(T_world_sensor), world)
+
+
+def _pose(k: int) -> np.ndarray:
+    return geometry.from_euler("z", 0.0, t=[STEP * k, 0.0, 0.0])
+
+
+def _walker_mask(points_world: np.ndarray, walker_y: float) -> np.ndarray:
+    return (np.abs(points_world[:, 0] - 10.0) <= 0.21) & (np.abs(points_world[:, 1] - walker_y) <= 0.21) \
+        & (points_world[:, 2] > -HEIGHT + 0.01)
+
+
+def test_a_walker_has_left_the_free_space_of_an_older_scan():
+    """The walker moved 0.45 m in three scans: where it stands now, scan k-4 saw the wall.
+    The pillar, the wall and the ground stood there then too."""
+    c = MotionEvidenceConfig()
+    y_old, y_now = 1.45, 1.0  # 15 cm per scan, sideways
+    old = _scan(_world(y_old), _pose(0))
+    now_world = _world(y_now)
+    prev = _scan(now_world, _pose(3))  # scan k-1, three scans later
+    T_old_prev = geometry.inv(_pose(0)) @ _pose(3)
+    flagged = slow_movers(prev, T_old_prev, RangeImage(old, c), c)
+    walker = _walker_mask(now_world, y_now)
+    assert flagged[walker].mean() > 0.5
+    assert not flagged[~walker].any()  # wall, pillar, ground: all seen there before
+
+    # the walker standing still (only the ego vehicle moved): nothing is flagged
+    still = _scan(_world(y_now), _pose(0))
+    assert not slow_movers(prev, T_old_prev, RangeImage(still, c), c).any()
+    # the evidence is where the points stand, not where they were: the walker's old place
+    # (free in scan k-1) does not flag the older scan's points
+    back = slow_movers(old, geometry.inv(T_old_prev), RangeImage(prev, c), c)
+    assert not back[_walker_mask(_world(y_old), y_old)].all()
+
+
+def test_the_objects_stage_tests_the_scan_baseline_scans_older_in_its_window():
+    """``ObjectsStage`` takes the older scan from the network's window and places it with the
+    frontend's own poses; ``baseline_scans: 0`` turns the test off, and a window shorter than
+    the baseline uses its oldest scan."""
+    from frontends.ssf_stages import ObjectsStage, PairState
+
+    ys = [1.45, 1.3, 1.15, 1.0, 0.85]  # the walker at scans k-4 .. k
+    frames = [Frame(index=i, timestamp=0.1 * i, points=_scan(_world(y), _pose(i))) for i, y in enumerate(ys)]
+    poses = [_pose(i) for i in range(5)]
+    walker = _walker_mask(_world(ys[3]), ys[3])
+
+    def flagged(baseline: int, window: int) -> np.ndarray:
+        config = SsfConfig()
+        config.objects.motion_evidence.baseline_scans = baseline
+        stage = ObjectsStage(config)
+        history = frames[4 - window:4]
+        state = PairState(frames[3], frames[4], history, poses[4 - window:4], T_world_guess=poses[4])
+        image = RangeImage(frames[4].points, config.objects.motion_evidence)
+        return stage._slow_movers(state, image, None)
+
+    assert flagged(3, 4)[walker].mean() > 0.5  # against scan k-4: 45 cm of free space
+    assert not flagged(0, 4).any()
+    assert flagged(3, 2)[walker].any()  # window of two: scan k-2 (15 cm; the window still sees through part)
+    assert not flagged(3, 1).any()  # no scan older than k-1 in the window
