@@ -353,7 +353,8 @@ def restore_motion_models(saved: list) -> None:
 
 class ObjectsStage:
     """Moving objects against scan k: candidates (network dynamic, tracked movers, geometric
-    movers) -> per-object ICP -> flow, dynamic labels and instances. Needs an accepted
+    movers, slow movers against an older scan of the window) -> per-object ICP -> flow,
+    dynamic labels and instances. Needs an accepted
     static refinement (the ego motion it verifies objects against); keeps the network's
     output otherwise.
 
