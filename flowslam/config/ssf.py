@@ -135,6 +135,16 @@ class MotionEvidenceConfig(StrictModel):
     at least ``min_points`` points where that scan sees through is a candidate object.
     Walkers and slow cars (5-10 cm per scan) never leave scan k's surface in one step,
     but do in a few. 0: off; more than the window holds: the oldest scan in it."""
+    baseline_own_bin: bool = False
+    """Opt-in: that test looks at each point's own range-image bin, with the margins below,
+    instead of the seen-through test's window and margins. Measured (stop 28): more slow
+    walkers found (fresh `dt` recall 0.46 -> 0.67), more static objects called moving
+    (fresh `static` 0.14 -> 0.45 % of points)."""
+    baseline_margin_m: float = Field(0.15, ge=0)
+    """With ``baseline_own_bin``: the older scan's return must lie farther than the point
+    by this ..."""
+    baseline_relative_margin: float = Field(0.01, ge=0)
+    """... plus this share of the point's range."""
 
 
 class ObjectRefinementConfig(StrictModel):

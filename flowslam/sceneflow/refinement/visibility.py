@@ -54,6 +54,8 @@ class RangeImage:
         self.n_el = (int(np.ceil((float(el.max()) - self.el0) / c.elevation_resolution_deg)) + 1) if len(el) else 1
         image = np.full((self.n_el, self.n_az), np.inf)
         np.minimum.at(image, self._bins(az, el), r)
+        self.nearest = image
+        """Nearest return per bin (+inf: none)."""
         size = 2 * c.window + 1
         # nearest return within the window (empty bins are +inf: they do not count) ...
         self.window_min = ndimage.minimum_filter(image, size=size, mode=("nearest", "wrap"))
@@ -66,13 +68,17 @@ class RangeImage:
         ie = np.floor((el - self.el0) / c.elevation_resolution_deg).astype(np.int64)
         return ie, ia
 
-    def _lookup(self, points: np.ndarray):
-        """(range (N,), nearest return in each point's window (N,), whether that window has any
-        return (N,), whether the point's direction lies within the image's elevations (N,))."""
+    def _lookup(self, points: np.ndarray, own_bin: bool = False):
+        """(range (N,), nearest return in each point's window (N,) -- in its own bin with
+        ``own_bin`` --, whether that window (bin) has any return (N,), whether the point's
+        direction lies within the image's elevations (N,))."""
         az, el, r = spherical(np.asarray(points, dtype=np.float64))
         ie, ia = self._bins(az, el)
         inside = (ie >= 0) & (ie < self.n_el)
         ie = np.clip(ie, 0, self.n_el - 1)
+        if own_bin:
+            nearest = self.nearest[ie, ia]
+            return r, nearest, np.isfinite(nearest), inside
         return r, self.window_min[ie, ia], self.window_known[ie, ia], inside
 
     def in_front(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -87,12 +93,17 @@ class RangeImage:
         where = points * (np.where(front, nearest, r) / np.maximum(r, 1e-9))[:, None]
         return front, where
 
-    def sees_beyond(self, points: np.ndarray) -> np.ndarray:
+    def sees_beyond(self, points: np.ndarray, own_bin: bool = False, margin_m: float | None = None,
+                    relative_margin: float | None = None) -> np.ndarray:
         """(N,) bool: in the window around each point's direction (sensor frame of this scan)
-        at least one bin has a return and every return lies clearly beyond the point."""
+        -- or in its own bin, with ``own_bin`` -- at least one bin has a return and every
+        return lies clearly beyond the point: farther than r + ``margin_m`` +
+        ``relative_margin`` r (the config's margins unless given)."""
         c = self.config
-        r, nearest, known, inside = self._lookup(points)
-        return inside & known & (nearest > r + c.margin_m + c.relative_margin * r)
+        margin = c.margin_m if margin_m is None else margin_m
+        relative = c.relative_margin if relative_margin is None else relative_margin
+        r, nearest, known, inside = self._lookup(points, own_bin)
+        return inside & known & (nearest > r + margin + relative * r)
 
 
 def geometric_movers(
@@ -151,12 +162,21 @@ def slow_movers(
     arrived there since: an object moving too slowly to leave scan k's surface in one step
     (the off-surface test of :func:`geometric_movers`) has left the older scan's free space
     after a few. Only these points are flagged (not seen-through): they become candidates,
-    and their own ICP decides (``ground``: as in :func:`geometric_movers`)."""
+    and their own ICP decides (``ground``: as in :func:`geometric_movers`). The free-space
+    test is the seen-through one (a window of bins, its margins); with ``baseline_own_bin``
+    it looks at each point's own bin with the margins ``baseline_margin_m`` +
+    ``baseline_relative_margin`` r instead: a walker shifts by less than a window in a few
+    scans, so more slow walkers are found, and more static objects (opt-in)."""
     c = config or MotionEvidenceConfig()
     flagged = np.zeros(len(source), dtype=bool)
     near = np.flatnonzero(np.einsum("ij,ij->i", source[:, :2], source[:, :2]) < c.max_range_m ** 2)
     near = near[_above_ground(source, near, c, ground)]
-    near = near[old_image.sees_beyond(transform_points(T_old_source, source[near]))]
+    x = transform_points(T_old_source, source[near])
+    if c.baseline_own_bin:
+        near = near[old_image.sees_beyond(x, own_bin=True, margin_m=c.baseline_margin_m,
+                                          relative_margin=c.baseline_relative_margin)]
+    else:
+        near = near[old_image.sees_beyond(x)]
     if near.size == 0:
         return flagged
     labels = bev_clusters(source[near], c.cluster_cell_m)
