@@ -92,8 +92,7 @@ def voxel_ids(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.nda
     keys -= keys.min(axis=0)
     if keys.size and keys.max() < (1 << 21):
         return group_keys((keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2])
-    else:
-        _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
     return inverse.reshape(-1), counts
 
 

@@ -379,7 +379,7 @@ class ObjectsStage:
             object_target_range,
             refine_objects,
         )
-        from flowslam.sceneflow.refinement.visibility import RangeImage, geometric_movers, slow_movers
+        from flowslam.sceneflow.refinement.visibility import RangeImage, geometric_movers
 
         if not state.refinement_accepted:
             return

@@ -125,8 +125,7 @@ def geometric_movers(
     c = config or MotionEvidenceConfig()
     movers = np.zeros(len(source), dtype=bool)
     seen = np.zeros(len(source), dtype=bool)
-    near = np.flatnonzero(np.einsum("ij,ij->i", source[:, :2], source[:, :2]) < c.max_range_m ** 2)
-    near = near[_above_ground(source, near, c, ground)]
+    near = _tested(source, c, ground)
     if near.size == 0:
         return movers, seen
     x = transform_points(T_ego, source[near])
@@ -137,13 +136,7 @@ def geometric_movers(
     if near.size == 0:
         return movers, seen
     seen[near] = (range_image or RangeImage(target, c)).sees_beyond(x)
-    labels = bev_clusters(source[near], c.cluster_cell_m)
-    counts = np.bincount(labels)
-    seeds = np.bincount(labels, weights=seen[near].astype(np.float64), minlength=len(counts))
-    kept = (counts >= c.min_points) & (seeds >= c.min_seen_through)
-    kept[kept] = bev_extent(source[near, :2], labels, len(counts))[kept] <= c.max_extent_m
-    movers[near[kept[labels]]] = True
-    return movers, seen
+    return _compact_clusters(source, near, c, seen[near]), seen
 
 
 def slow_movers(
@@ -168,22 +161,39 @@ def slow_movers(
     ``baseline_relative_margin`` r instead: a walker shifts by less than a window in a few
     scans, so more slow walkers are found, and more static objects (opt-in)."""
     c = config or MotionEvidenceConfig()
-    flagged = np.zeros(len(source), dtype=bool)
-    near = np.flatnonzero(np.einsum("ij,ij->i", source[:, :2], source[:, :2]) < c.max_range_m ** 2)
-    near = near[_above_ground(source, near, c, ground)]
+    near = _tested(source, c, ground)
     x = transform_points(T_old_source, source[near])
     if c.baseline_own_bin:
         near = near[old_image.sees_beyond(x, own_bin=True, margin_m=c.baseline_margin_m,
                                           relative_margin=c.baseline_relative_margin)]
     else:
         near = near[old_image.sees_beyond(x)]
-    if near.size == 0:
+    return _compact_clusters(source, near, c)
+
+
+def _tested(source: np.ndarray, c: MotionEvidenceConfig, ground: LocalGround | None) -> np.ndarray:
+    """Indices of the points of ``source`` that both tests look at: within ``max_range_m``
+    (horizontal) and clear of the local ground (``ground``: see :func:`_above_ground`)."""
+    near = np.flatnonzero(np.einsum("ij,ij->i", source[:, :2], source[:, :2]) < c.max_range_m ** 2)
+    return near[_above_ground(source, near, c, ground)]
+
+
+def _compact_clusters(source: np.ndarray, idx: np.ndarray, c: MotionEvidenceConfig,
+                      seen: np.ndarray | None = None) -> np.ndarray:
+    """(N,) bool over ``source``: the points ``idx`` that lie in BEV clusters of them
+    (``cluster_cell_m``) of at least ``min_points`` points, at most ``max_extent_m`` across,
+    and -- with ``seen`` ((len(idx),) bool) -- holding at least ``min_seen_through`` seen
+    points."""
+    flagged = np.zeros(len(source), dtype=bool)
+    if idx.size == 0:
         return flagged
-    labels = bev_clusters(source[near], c.cluster_cell_m)
+    labels = bev_clusters(source[idx], c.cluster_cell_m)
     counts = np.bincount(labels)
     kept = counts >= c.min_points
-    kept[kept] = bev_extent(source[near, :2], labels, len(counts))[kept] <= c.max_extent_m
-    flagged[near[kept[labels]]] = True
+    if seen is not None:
+        kept &= np.bincount(labels, weights=seen.astype(np.float64), minlength=len(counts)) >= c.min_seen_through
+    kept[kept] = bev_extent(source[idx, :2], labels, len(counts))[kept] <= c.max_extent_m
+    flagged[idx[kept[labels]]] = True
     return flagged
 
 
