@@ -231,3 +231,67 @@ def test_the_flow_segmentation_loop_stops_when_the_rounds_agree():
     assert np.count_nonzero(loop.dynamic != once.dynamic) <= 0.01 * np.count_nonzero(labels % 2)
     moving = loop.dynamic & once.dynamic
     assert np.abs(loop.flow[moving] - once.flow[moving]).max() < 0.03
+
+
+def _bus_pair(shift: float):
+    """A standing sensor beside an 18 x 2.5 x 3 m bus (its near side, roof and rear; it
+    starts at x = -4 m, 2 m to the left) that drives ``shift`` m along x per scan, with a
+    road and a wall. Scan k-1, scan k, labels of scan k-1 (1: the bus)."""
+    def scene(scan: int):
+        road = _grid(np.array([50.0, 0, 0]), np.array([0, 16.0, 0]), np.array([-10.0, -8.0, -0.01]))
+        wall = _grid(np.array([50.0, 0, 0]), np.array([0, 0, 3.0]), np.array([-10.0, 8.0, 0.0]))
+        L, W, H = np.array([18.0, 0, 0]), np.array([0, 2.5, 0]), np.array([0, 0, 3.0])
+        o = np.array([-4.0 + shift * scan, 2.0, 0.0])
+        bus = np.concatenate([_grid(L, H, o), _grid(L, W, o + H), _grid(W, H, o)])
+        return np.concatenate([road, wall, bus]), np.concatenate([np.zeros(len(road) + len(wall), int), np.ones(len(bus), int)])
+
+    (prev, labels), (curr, _) = scene(0), scene(1)
+    return prev, curr, labels
+
+
+def test_a_bus_sliding_along_its_side_with_many_movers_gets_its_icp():
+    """A long bus sliding 0.5 m along itself fits its old side and roof: the ego motion puts
+    91 % of it on scan k's surface, over ``static_fitness_accept``. Its front 7 m are
+    geometric movers (an older scan saw through them), 37 % of its points, so it does not
+    take the static shortcut (``static_accept_max_movers``): its ICP finds ~5 m/s. Without
+    the limit it is called static."""
+    prev, curr, labels = _bus_pair(0.5)
+    bus = labels == 1
+    T_ego = np.eye(4)  # the sensor stands
+    flow = np.zeros_like(prev)
+    flow[bus] = [0.35, 0.0, 0.0]  # the network's rough guess
+    movers = bus & (prev[:, 0] > 7.0)
+    args = (prev, flow, bus, curr, T_ego, DT)
+    result = refine_objects(*args, ObjectRefinementConfig(), movers=movers)
+    ids = np.unique(result.instance[bus])
+    record = result.objects[int(ids[0])]
+    assert len(ids) == 1 and record["static_fitness"] > ObjectRefinementConfig().static_fitness_accept
+    assert result.dynamic[bus].mean() > 0.95 and not result.dynamic[~bus].any()
+    assert record["speed_mps"] == pytest.approx(5.0, abs=0.3)  # a slide along itself: ~4 % short
+    on_bus = bus & result.dynamic
+    assert np.abs(result.flow[on_bus] - [0.5, 0.0, 0.0]).max() < 0.03
+    shortcut = refine_objects(*args, ObjectRefinementConfig(static_accept_max_movers=1.01), movers=movers)
+    assert not shortcut.dynamic[bus].any()
+
+
+def test_an_object_is_not_lifted_onto_a_copy_of_itself_above():
+    """A walker-sized box leaves its spot between two scans of a standing sensor, and scan k
+    holds the same box 0.7 m higher (on a ledge) within the ICP's 1 m reach: the ICP lifts
+    the object onto it with fitness 1, but objects move on the ground, so that motion is
+    refused (``vertical_margin_m``) and no object is accepted; with no vertical limit a
+    motion that lifts it is taken."""
+    road = _grid(np.array([30.0, 0, 0]), np.array([0, 12.0, 0]), np.array([-5.0, -6.0, -0.01]))
+    person = _box(6.0, -2.0, (0.5, 0.5, 1.7))
+    prev = np.concatenate([road, person])
+    curr = np.concatenate([_grid(np.array([30.0, 0, 0]), np.array([0, 12.0, 0]), np.array([-5.0, -6.0, -0.01])),
+                           _box(6.0, -2.0, (0.5, 0.5, 1.7)) + [0.0, 0.0, 0.7]])
+    dynamic = np.arange(len(prev)) >= len(road)
+    flow = np.zeros_like(prev)
+    args = (prev, flow, dynamic, curr, np.eye(4), DT)
+    kept = refine_objects(*args, ObjectRefinementConfig())
+    lifted = refine_objects(*args, ObjectRefinementConfig(vertical_margin_m=10.0))
+    assert not any(o["accepted"] for o in kept.objects)
+    assert np.abs(kept.flow[dynamic, 2]).max() < 1e-9
+    accepted = [o for o in lifted.objects if o["accepted"]]
+    assert len(accepted) == 1 and accepted[0]["fitness"] > 0.9
+    assert np.median(lifted.flow[dynamic & lifted.dynamic, 2]) > 0.3

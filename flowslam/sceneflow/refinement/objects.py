@@ -121,17 +121,30 @@ def _cloud(points: np.ndarray):
 
 
 def _best_icp(p: np.ndarray, box: np.ndarray, tgt, surface: ScanSurface, starts: list[np.ndarray],
-              c: ObjectRefinementConfig):
+              T_ego: np.ndarray, c: ObjectRefinementConfig):
     """ICP of ``p`` onto the target box ``box`` (``tgt``: its Open3D cloud) from each start;
-    the best by (fitness, -RMSE) against ``surface``: (T, fitness, rmse, start)."""
+    the best by (fitness, -RMSE) against ``surface`` of the results that keep the object on
+    the ground (:func:`_upright`): (T, fitness, rmse, start). None upright: (the first
+    start, 0, inf, the first start)."""
     best = None
     src = _cloud(p)
+    centroid = p.mean(axis=0)
     for T_start in starts:
         T = _register(p, src, box, tgt, T_start, c)
+        if not _upright(T, T_ego, centroid, c):
+            continue
         fitness, rmse = _score(p, T, surface, c)
         if best is None or (fitness, -rmse) > (best[1], -best[2]):
             best = (T, fitness, rmse, T_start)
-    return best
+    return best or (starts[0], 0.0, float("inf"), starts[0])
+
+
+def _upright(T: np.ndarray, T_ego: np.ndarray, centroid: np.ndarray, c: ObjectRefinementConfig) -> bool:
+    """Whether the motion ``T`` moves the object's ``centroid`` (frame k-1, m) at most
+    ``vertical_margin_m`` + ``vertical_grade`` x its horizontal departure up or down from
+    its ego landing (``T_ego``; sensor z of frame k): objects move on the ground."""
+    departure = T[:3, :3] @ centroid + T[:3, 3] - (T_ego[:3, :3] @ centroid + T_ego[:3, 3])
+    return abs(departure[2]) <= c.vertical_margin_m + c.vertical_grade * float(np.hypot(departure[0], departure[1]))
 
 
 def _plane_distances(x: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> np.ndarray:
@@ -448,7 +461,8 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     ego = transform_points(T_ego, p)  # where the points land if they are static
     record = {"points": int(len(p)), "static_fitness": static_fitness, "static_rmse_m": static_rmse,
               "accepted": False}
-    fits = static_fitness >= c.static_fitness_accept and static_rmse <= c.static_accept_rmse_m
+    fits = (static_fitness >= c.static_fitness_accept and static_rmse <= c.static_accept_rmse_m
+            and np.count_nonzero(sub) < c.static_accept_max_movers * len(p))
     hidden = (not fits and range_image is not None and c.hidden_test and not sub.any() and not seen.any()
               and _hidden_share(ego, range_image, guesses, c) >= c.hidden_static_share)
     if fits or hidden:  # static: skip the ICP
@@ -468,7 +482,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         return record
     tgt = _cloud(box)
     motions = []  # candidate rigid motions of (parts of) this object besides the ego motion
-    T, fitness, rmse, T_start = _best_icp(p[_icp_subset(len(p), c)], box, tgt, surface, [T0] + mover_starts, c)
+    T, fitness, rmse, T_start = _best_icp(p[_icp_subset(len(p), c)], box, tgt, surface, [T0] + mover_starts, T_ego, c)
     moved_by = float(np.linalg.norm((T[:3, :3] - R) @ p.mean(axis=0) + T[:3, 3] - T_start[:3, 3]))
     record.update(fitness=fitness, rmse_m=rmse, icp_correction_m=moved_by)
     if fitness >= c.min_fitness and rmse <= c.max_rmse_m and moved_by <= c.max_correction_m:
@@ -480,7 +494,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     # the geometric movers alone, from shifted ego landings -- only when the object's own ICP
     # does not already explain them (no fitness, at most 1, can then beat its by static_preference)
     if mover_starts and joint_on_movers + c.static_preference < 1.0:
-        Tm, fm, rm, _ = _best_icp(moving_part, box, tgt, surface, mover_starts + [T0], c)
+        Tm, fm, rm, _ = _best_icp(moving_part, box, tgt, surface, mover_starts + [T0], T_ego, c)
         record.update(mover_fitness=fm, mover_rmse_m=rm)
         if fm >= c.min_fitness and rm <= c.max_rmse_m and fm > joint_on_movers + c.static_preference:
             record["accepted"] = True
