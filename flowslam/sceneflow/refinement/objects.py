@@ -565,15 +565,22 @@ def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], s
     ``score_plane_m``) while its ego landing ``ego`` is strictly nearer: then the ego
     landing. Points the object's motion explains keep it (an object is rigid: the faces a
     car slides along explain its ego landings too, and must not split it); the others are
-    the static false positives merged into the object."""
+    the static false positives merged into the object. A motion that moves a point up or
+    down from its ego landing by more than ``vertical_margin_m`` + ``vertical_grade`` x
+    its horizontal departure is not one of its choices (an object's motion passes that
+    test at its centroid, but a turn of a long or merged object can lift its far end):
+    with no motion left, the point takes its ego landing."""
     if not motions:
         return ego, np.full(len(p), -1, dtype=np.int64)
     landings = np.stack([transform_points(M, p) for M in motions])
     dist = surface.tree.query(landings.reshape(-1, 3), distance_upper_bound=c.score_distance_m)[0]
     dist = dist.reshape(len(motions), len(p))
+    departure = landings - ego
+    lifted = np.abs(departure[..., 2]) > c.vertical_margin_m + c.vertical_grade * np.hypot(departure[..., 0], departure[..., 1])
+    dist[lifted] = np.inf  # a motion that lifts or sinks the point (a turn of a long or merged object): not its own
     best = np.argmin(dist, axis=0)
     rows = np.arange(len(p))
     d_ego = surface.tree.query(ego, distance_upper_bound=c.score_distance_m)[0]
     nearest = dist[best, rows]
-    take_ego = (d_ego < nearest) & ~(nearest <= c.score_plane_m)
+    take_ego = ((d_ego < nearest) & ~(nearest <= c.score_plane_m)) | lifted.all(axis=0)
     return np.where(take_ego[:, None], ego, landings[best, rows]), np.where(take_ego, -1, best)
