@@ -295,3 +295,28 @@ def test_an_object_is_not_lifted_onto_a_copy_of_itself_above():
     accepted = [o for o in lifted.objects if o["accepted"]]
     assert len(accepted) == 1 and accepted[0]["fitness"] > 0.9
     assert np.median(lifted.flow[dynamic & lifted.dynamic, 2]) > 0.3
+
+
+def test_a_point_does_not_take_a_motion_that_lifts_it():
+    """``_choose_landing`` on a long object whose motion (registered at its near end) turns
+    it about a horizontal axis: scan k holds every point's landing under that motion, so
+    each would fit it, but the far end rises by 0.5 m over its 1 m horizontal departure
+    (over ``vertical_margin_m`` + ``vertical_grade`` x 1 m = 0.4 m) and takes its ego
+    landing instead; the near end keeps the motion."""
+    from flowslam.sceneflow.refinement.clusters import ScanSurface
+    from flowslam.sceneflow.refinement.objects import _choose_landing
+
+    near = _box(5.0, 0.0, (0.5, 0.5, 1.0))
+    far = _box(15.0, 0.0, (0.5, 0.5, 1.0))
+    p = np.concatenate([near, far])
+    pitch = -np.arctan2(0.5, 10.0)  # turns x = 15 up by ~0.5 m about the near end (x = 5)
+    M = geometry.from_euler("y", pitch, t=[1.0, 0.0, 0.0])
+    M[:3, 3] += np.array([5.0, 0, 0]) - M[:3, :3] @ [5.0, 0, 0]
+    landings = geometry.transform_points(M, p)
+    surface = ScanSurface(landings)  # scan k: the moved object, nothing at the ego landings
+    landing, which = _choose_landing(p, p.copy(), [M], surface, ObjectRefinementConfig())
+    is_far = np.arange(len(p)) >= len(near)
+    assert (which[~is_far] == 0).all() and np.allclose(landing[~is_far], landings[~is_far])
+    assert (which[is_far] == -1).all() and np.allclose(landing[is_far], p[is_far])
+    free = ObjectRefinementConfig(vertical_margin_m=10.0)
+    assert (_choose_landing(p, p.copy(), [M], surface, free)[1] == 0).all()
