@@ -320,3 +320,28 @@ def test_a_point_does_not_take_a_motion_that_lifts_it():
     assert (which[is_far] == -1).all() and np.allclose(landing[is_far], p[is_far])
     free = ObjectRefinementConfig(vertical_margin_m=10.0)
     assert (_choose_landing(p, p.copy(), [M], surface, free)[1] == 0).all()
+
+
+def test_a_parked_car_in_a_passing_trucks_cluster_stays_static():
+    """A 10 m truck passes at 10 m/s 0.6 m from a parked car: both flagged, one cluster
+    (``cluster_cell_m`` 0.6 m), one object whose ICP finds the truck's motion. Under that
+    motion the car slides along its own sides, so 61 % of it would keep the truck's motion
+    as a part of its own (``instance_cell_m`` 0.3 m); the ego motion explains that part at
+    least as well, so it stays static and the truck moves as one instance."""
+    def scene(scan: int):
+        road = _grid(np.array([40.0, 0, 0]), np.array([0, 16.0, 0]), np.array([-5.0, -8.0, -0.01]))
+        wall = _grid(np.array([40.0, 0, 0]), np.array([0, 0, 3.0]), np.array([-5.0, 8.0, 0.0]))
+        parts = [road, wall, _box(4.0 + 1.0 * scan, -1.5, (10.0, 2.5, 3.0)), _car(9.0, 1.6)]
+        return np.concatenate(parts), np.concatenate([np.full(len(p), k) for p, k in zip(parts, [0, 0, 1, 2])])
+
+    (prev, labels), (world_curr, _) = scene(0), scene(1)
+    T_world_curr = geometry.from_euler("z", 0.0, t=[0.8, 0.0, 0.0])
+    curr = geometry.transform_points(geometry.inv(T_world_curr), world_curr)
+    T_ego = geometry.inv(T_world_curr)
+    flow = geometry.rigid_flow(T_ego, prev)
+    flow[labels > 0] += [0.8, 0.05, 0.0]
+    result = refine_objects(prev, flow, labels > 0, curr, T_ego, DT, ObjectRefinementConfig())
+    truck, parked = labels == 1, labels == 2
+    assert result.dynamic[truck].mean() > 0.95 and len(np.unique(result.instance[truck])) == 1
+    assert result.dynamic[parked].mean() < 0.01
+    assert np.abs(result.flow[parked & ~result.dynamic] - geometry.rigid_flow(T_ego, prev[parked & ~result.dynamic])).max() < 1e-9

@@ -334,7 +334,8 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
             flow[extra], dynamic[extra], settled[extra], instance[extra] = landing - source[extra], moving, True, i
             motion_of[extra] = 0
             objects[i]["grown_points"] = int(len(extra))
-    _split_instances(source, flow, dynamic & settled, instance, motion_of, objects, T_ego, interval, c)
+    still = _split_instances(source, flow, dynamic & settled, instance, motion_of, objects, T_ego, interval, surface, c)
+    flow[still], dynamic[still] = rigid_flow(T_ego, source[still]), False
     # the rest of the network's dynamic points: static if the ego motion lands them on a surface
     rest = np.flatnonzero(dynamic & ~settled)
     on_surface = np.zeros(0, dtype=bool)
@@ -512,26 +513,38 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
 
 def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, instance: np.ndarray,
                      motion_of: np.ndarray, objects: list[dict], T_ego: np.ndarray, interval: float,
-                     c: ObjectRefinementConfig) -> None:
+                     surface: ScanSurface, c: ObjectRefinementConfig) -> np.ndarray:
     """Split every object's ``moving`` points into instances (:func:`_parts`: by the motion
     they took, ``motion_of``, then by ``instance_cell_m`` components); part 0 keeps the
     object's entry and ``instance`` id, each further part gets a new entry (``part_of``)
-    appended to ``objects``. Speeds (m/s) are the parts' median departure from the ego
-    landing (``flow`` against ``T_ego``'s) over ``interval`` s."""
+    appended to ``objects``, unless the ego motion explains that part as well as its own
+    landings do (:func:`_ego_explains` on scan k's ``surface``): a parked car merged into
+    a passing truck's cluster slides along itself under the truck's motion. Returns the
+    points of such parts (static; they keep the object's ``instance``). Speeds (m/s) are
+    the parts' median departure from the ego landing (``flow`` against ``T_ego``'s) over
+    ``interval`` s."""
+    still = np.zeros(len(source), dtype=bool)
     idx = np.flatnonzero(moving & (instance >= 0))
     if idx.size == 0:
-        return
-    departure = np.linalg.norm(source[idx] + flow[idx] - transform_points(T_ego, source[idx]), axis=1) / interval
+        return still
+    ego = transform_points(T_ego, source[idx])
+    departure = np.linalg.norm(source[idx] + flow[idx] - ego, axis=1) / interval
     order = np.argsort(instance[idx], kind="stable")
     for members in np.split(order, np.flatnonzero(np.diff(instance[idx][order])) + 1):
         own = int(instance[idx[members[0]]])
         parts = _parts(source[idx[members]], motion_of[idx[members]], c)
         objects[own]["speed_mps"] = float(np.median(departure[members[parts == 0]]))
         for part in range(1, int(parts.max()) + 1):
-            mine = idx[members[parts == part]]
+            sel = members[parts == part]
+            mine = idx[sel]
+            landed = _fit(_plane_distances(source[mine] + flow[mine], surface, c), c)
+            if _ego_explains(_fit(_plane_distances(ego[sel], surface, c), c), *landed, len(mine), c):
+                still[mine] = True
+                continue
             instance[mine] = len(objects)
             objects.append({"points": int(len(mine)), "part_of": own, "accepted": True,
-                            "speed_mps": float(np.median(departure[members[parts == part]]))})
+                            "speed_mps": float(np.median(departure[sel]))})
+    return still
 
 
 def _parts(p: np.ndarray, which: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
