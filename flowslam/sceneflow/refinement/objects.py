@@ -517,12 +517,13 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
     """Split every object's ``moving`` points into instances (:func:`_parts`: by the motion
     they took, ``motion_of``, then by ``instance_cell_m`` components); part 0 keeps the
     object's entry and ``instance`` id, each further part gets a new entry (``part_of``)
-    appended to ``objects``, unless the ego motion explains that part as well as its own
-    landings do (:func:`_ego_explains` on scan k's ``surface``): a parked car merged into
-    a passing truck's cluster slides along itself under the truck's motion. Returns the
-    points of such parts (static; they keep the object's ``instance``). Speeds (m/s) are
-    the parts' median departure from the ego landing (``flow`` against ``T_ego``'s) over
-    ``interval`` s."""
+    appended to ``objects``. A part (part 0 too) that the ego motion explains as well as
+    its own landings do (:func:`_ego_explains` on scan k's ``surface``) stays static: a
+    parked car merged into a passing truck's cluster, or a hedge merged with a walker,
+    slides along itself under the other's motion. Returns the points of such parts
+    (static; they keep the object's ``instance``). Speeds (m/s) are the parts' median
+    departure from the ego landing (``flow`` against ``T_ego``'s) over ``interval`` s
+    (0 for an object whose part 0 stays static)."""
     still = np.zeros(len(source), dtype=bool)
     idx = np.flatnonzero(moving & (instance >= 0))
     if idx.size == 0:
@@ -533,13 +534,16 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
     for members in np.split(order, np.flatnonzero(np.diff(instance[idx][order])) + 1):
         own = int(instance[idx[members[0]]])
         parts = _parts(source[idx[members]], motion_of[idx[members]], c)
-        objects[own]["speed_mps"] = float(np.median(departure[members[parts == 0]]))
-        for part in range(1, int(parts.max()) + 1):
+        objects[own]["speed_mps"] = 0.0
+        for part in range(int(parts.max()) + 1):
             sel = members[parts == part]
             mine = idx[sel]
             landed = _fit(_plane_distances(source[mine] + flow[mine], surface, c), c)
             if _ego_explains(_fit(_plane_distances(ego[sel], surface, c), c), *landed, len(mine), c):
                 still[mine] = True
+                continue
+            if part == 0:
+                objects[own]["speed_mps"] = float(np.median(departure[sel]))
                 continue
             instance[mine] = len(objects)
             objects.append({"points": int(len(mine)), "part_of": own, "accepted": True,
