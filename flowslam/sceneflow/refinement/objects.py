@@ -315,6 +315,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
         for idx in (idx for idx, flat in zip(clusters, on_road) if flat):
             flow[idx], dynamic[idx], settled[idx] = rigid_flow(T_ego, source[idx]), False, True
         clusters, road = [idx for idx, flat in zip(clusters, on_road) if not flat], int(sum(on_road))
+    clusters = _split_wide(source, clusters, c)
     grown = []  # (object, its motion, its dynamic points) to grow
     motion_of = np.full(len(source), -1, dtype=np.int64)  # index of the object motion a point took
     for idx, static_score in zip(clusters, _static_scores(source, clusters, T_ego, surface, c)):
@@ -413,6 +414,31 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
             moving = np.linalg.norm(landing[extra] - ego, axis=1) > c.dynamic_speed_mps * interval
             taken[pts] = True
             yield i, pts, np.where(moving[:, None], landing[extra], ego), moving  # static: the ego landing
+
+
+def _split_wide(source: np.ndarray, clusters: list[np.ndarray], c: ObjectRefinementConfig) -> list[np.ndarray]:
+    """Clusters wider than ``split_extent_m`` (BEV diagonal) split into their
+    ``instance_cell_m`` components of at least ``min_points`` (smaller ones join the
+    largest): in a crowd or a queue one cluster holds several movers, and one rigid motion
+    cannot register them all."""
+    if c.split_extent_m <= 0 or not clusters:
+        return clusters
+    out = []
+    for idx in clusters:
+        xy = source[idx, :2]
+        if np.hypot(*np.ptp(xy, axis=0)) <= c.split_extent_m:
+            out.append(idx)
+            continue
+        labels = bev_clusters(source[idx], c.instance_cell_m)
+        counts = np.bincount(labels)
+        big = np.flatnonzero(counts >= c.min_points)
+        if len(big) <= 1:
+            out.append(idx)
+            continue
+        largest = big[np.argmax(counts[big])]
+        labels = np.where(np.isin(labels, big), labels, largest)
+        out.extend(idx[labels == b] for b in big)
+    return out
 
 
 def _clusters(source: np.ndarray, cand: np.ndarray, c: ObjectRefinementConfig) -> list[np.ndarray]:
