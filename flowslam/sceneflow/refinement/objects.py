@@ -123,15 +123,17 @@ def _cloud(points: np.ndarray):
 def _best_icp(p: np.ndarray, box: np.ndarray, tgt, surface: ScanSurface, starts: list[np.ndarray],
               T_ego: np.ndarray, c: ObjectRefinementConfig):
     """ICP of ``p`` onto the target box ``box`` (``tgt``: its Open3D cloud) from each start;
-    the best by (fitness, -RMSE) against ``surface`` of the results that keep the object on
-    the ground (:func:`_upright`): (T, fitness, rmse, start). None upright: (the first
+    the best by (fitness, -RMSE) against ``surface`` of the results that keep the object's
+    centroid on the ground (not :func:`_lifted` from its ``T_ego`` landing): (T, fitness,
+    rmse, start). None upright: (the first
     start, 0, inf, the first start)."""
     best = None
     src = _cloud(p)
     centroid = p.mean(axis=0)
+    ego_centroid = T_ego[:3, :3] @ centroid + T_ego[:3, 3]
     for T_start in starts:
         T = _register(p, src, box, tgt, T_start, c)
-        if not _upright(T, T_ego, centroid, c):
+        if _lifted(T[:3, :3] @ centroid + T[:3, 3] - ego_centroid, c):
             continue
         fitness, rmse = _score(p, T, surface, c)
         if best is None or (fitness, -rmse) > (best[1], -best[2]):
@@ -139,12 +141,12 @@ def _best_icp(p: np.ndarray, box: np.ndarray, tgt, surface: ScanSurface, starts:
     return best or (starts[0], 0.0, float("inf"), starts[0])
 
 
-def _upright(T: np.ndarray, T_ego: np.ndarray, centroid: np.ndarray, c: ObjectRefinementConfig) -> bool:
-    """Whether the motion ``T`` moves the object's ``centroid`` (frame k-1, m) at most
-    ``vertical_margin_m`` + ``vertical_grade`` x its horizontal departure up or down from
-    its ego landing (``T_ego``; sensor z of frame k): objects move on the ground."""
-    departure = T[:3, :3] @ centroid + T[:3, 3] - (T_ego[:3, :3] @ centroid + T_ego[:3, 3])
-    return abs(departure[2]) <= c.vertical_margin_m + c.vertical_grade * float(np.hypot(departure[0], departure[1]))
+def _lifted(departure: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
+    """Whether each departure (..., 3) (m, sensor frame k) from an ego landing goes up or down
+    by more than ``vertical_margin_m`` + ``vertical_grade`` x its horizontal length: objects
+    move on the ground."""
+    departure = np.asarray(departure)
+    return np.abs(departure[..., 2]) > c.vertical_margin_m + c.vertical_grade * np.hypot(departure[..., 0], departure[..., 1])
 
 
 def _plane_distances(x: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> np.ndarray:
@@ -618,8 +620,7 @@ def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], s
     landings = np.stack([transform_points(M, p) for M in motions])
     dist = surface.tree.query(landings.reshape(-1, 3), distance_upper_bound=c.score_distance_m)[0]
     dist = dist.reshape(len(motions), len(p))
-    departure = landings - ego
-    lifted = np.abs(departure[..., 2]) > c.vertical_margin_m + c.vertical_grade * np.hypot(departure[..., 0], departure[..., 1])
+    lifted = _lifted(landings - ego, c)
     dist[lifted] = np.inf  # a motion that lifts or sinks the point (a turn of a long or merged object): not its own
     best = np.argmin(dist, axis=0)
     rows = np.arange(len(p))
