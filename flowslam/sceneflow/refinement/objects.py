@@ -7,7 +7,10 @@ the previous pair carried on (:class:`~flowslam.sceneflow.refinement.tracking.Mo
 connected components on a bird's-eye-view grid (``cluster_cell_m``); points nearer than
 ``min_range_m`` (the ego vehicle's own body) are never candidates, and a cluster with
 fewer than ``min_above_ground_points`` points above the local ground is road (static, no
-ICP: a ring's arc on flat ground slides along itself under ICP). Each object with at least ``min_points``
+ICP: a ring's arc on flat ground slides along itself under ICP). A cluster wider than
+``split_extent_m`` is also registered as its ``instance_cell_m`` components, which replace it
+when they explain ``split_gain`` more of it (a queue or a crowd merged into one cluster).
+Each object with at least ``min_points``
 points is registered to scan ``k`` by point-to-point ICP (Open3D, coarse-to-fine
 correspondence distances), starting from the ego rotation and the median network
 displacement of its points. Accepted objects (ICP fitness and RMSE within bounds)
@@ -317,13 +320,11 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
         for idx in (idx for idx, flat in zip(clusters, on_road) if flat):
             flow[idx], dynamic[idx], settled[idx] = rigid_flow(T_ego, source[idx]), False, True
         clusters, road = [idx for idx, flat in zip(clusters, on_road) if not flat], int(sum(on_road))
-    clusters = _split_wide(source, clusters, c)
     grown = []  # (object, its motion, its dynamic points) to grow
     motion_of = np.full(len(source), -1, dtype=np.int64)  # index of the object motion a point took
-    for idx, static_score in zip(clusters, _static_scores(source, clusters, T_ego, surface, c)):
+    scene = (source, flow, movers, seen, T_ego, interval, surface, c, range_image, guesses)
+    for idx, record in _registered(clusters, *scene):
         own = instance[idx] = len(objects)
-        record = _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
-                                static_score, c, range_image, guesses)
         motion = record.pop("motion", None)
         objects.append(record)
         if "result" in record:
@@ -418,29 +419,55 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
             yield i, pts, np.where(moving[:, None], landing[extra], ego), moving  # static: the ego landing
 
 
-def _split_wide(source: np.ndarray, clusters: list[np.ndarray], c: ObjectRefinementConfig) -> list[np.ndarray]:
-    """Clusters wider than ``split_extent_m`` (BEV diagonal) split into their
-    ``instance_cell_m`` components of at least ``min_points`` (smaller ones join the
-    largest): in a crowd or a queue one cluster holds several movers, and one rigid motion
-    cannot register them all."""
-    if c.split_extent_m <= 0 or not clusters:
-        return clusters
-    out = []
-    for idx in clusters:
-        xy = source[idx, :2]
-        if np.hypot(*np.ptp(xy, axis=0)) <= c.split_extent_m:
-            out.append(idx)
-            continue
-        labels = bev_clusters(source[idx], c.instance_cell_m)
-        counts = np.bincount(labels)
-        big = np.flatnonzero(counts >= c.min_points)
-        if len(big) <= 1:
-            out.append(idx)
-            continue
-        largest = big[np.argmax(counts[big])]
-        labels = np.where(np.isin(labels, big), labels, largest)
-        out.extend(idx[labels == b] for b in big)
-    return out
+def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray, movers: np.ndarray,
+                seen: np.ndarray, T_ego: np.ndarray, interval: float, surface: ScanSurface,
+                c: ObjectRefinementConfig, range_image=None, guesses=None):
+    """Yields each cluster (index array into ``source``) with its :func:`_refine_object`
+    record. A cluster wider than ``split_extent_m`` is also registered as its
+    :func:`_components`, and those replace it when their registrations explain at least
+    ``split_gain`` of its points more than its own (:func:`_explained`): in a crowd or a
+    queue one cluster holds several movers, and one rigid motion cannot register them
+    all; but a car whose sparse candidate points fall into several components is better
+    registered whole (its pieces slide along their own faces, and explain about as much)."""
+    def refine(group):
+        for idx, static_score in zip(group, _static_scores(source, group, T_ego, surface, c)):
+            yield idx, _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
+                                      static_score, c, range_image, guesses)
+
+    for idx, record in refine(clusters):
+        parts = _components(source, idx, c)
+        if len(parts) > 1:
+            split = list(refine(parts))
+            gained = sum(_explained(r, surface, c) * len(i) for i, r in split) - _explained(record, surface, c) * len(idx)
+            if gained >= c.split_gain * len(idx):
+                yield from split
+                continue
+        yield idx, record
+
+
+def _explained(record: dict, surface: ScanSurface, c: ObjectRefinementConfig) -> float:
+    """Share of an object's points whose landing in its ``result`` (each point's own choice
+    among the object's motions and the ego motion) lies within ``score_plane_m`` of scan
+    k's surface (:func:`_fit`); 0 when not accepted (no result)."""
+    if "result" not in record:
+        return 0.0
+    return _fit(_plane_distances(record["result"][0], surface, c), c)[0]
+
+
+def _components(source: np.ndarray, idx: np.ndarray, c: ObjectRefinementConfig) -> list[np.ndarray]:
+    """The cluster ``idx`` as its ``instance_cell_m`` components of at least ``min_points``
+    (smaller ones join the largest) when its BEV diagonal exceeds ``split_extent_m`` (> 0);
+    else ``[idx]``."""
+    if c.split_extent_m <= 0 or np.hypot(*np.ptp(source[idx, :2], axis=0)) <= c.split_extent_m:
+        return [idx]
+    labels = bev_clusters(source[idx], c.instance_cell_m)
+    counts = np.bincount(labels)
+    big = np.flatnonzero(counts >= c.min_points)
+    if len(big) <= 1:
+        return [idx]
+    largest = big[np.argmax(counts[big])]
+    labels = np.where(np.isin(labels, big), labels, largest)
+    return [idx[labels == b] for b in big]
 
 
 def _clusters(source: np.ndarray, cand: np.ndarray, c: ObjectRefinementConfig) -> list[np.ndarray]:
