@@ -198,6 +198,13 @@ class ObjectRefinementConfig(StrictModel):
     """Per-object ICP stages, coarse to fine: largest correspondence distance per stage."""
     max_iterations: int = Field(15, ge=1)
     """ICP iterations per stage."""
+    plane_stage_radius_m: float = Field(0.3, ge=0)
+    """> 0: the best ICP result of each object is polished by a point-to-plane ICP at the
+    finest correspondence distance, on target normals estimated within this radius (m),
+    and keeps the polish when that fits scan k at least as well; 0: off."""
+    plane_stage_min_points: int = Field(300, ge=0)
+    """... for motions registered on at least this many points (the normals of sparser
+    objects are too rough)."""
     grow_max_extent_m: float = Field(8.0, ge=0)
     """After its ICP, a moving object takes the rest of the above-ground BEV components
     (``cluster_cell_m``, at most this BEV diagonal, m) its dynamic points lie in, when its

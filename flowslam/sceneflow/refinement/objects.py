@@ -14,7 +14,8 @@ Each object with at least ``min_points``
 points is registered to scan ``k`` by point-to-point ICP (Open3D, coarse-to-fine
 correspondence distances), starting from the ego rotation and the median network
 displacement of its points. Accepted objects (ICP fitness and RMSE within bounds)
-get the rigid flow of their own motion -- or of the ego motion when that explains the
+get the rigid flow of their own motion (polished by one point-to-plane ICP,
+``plane_stage_radius_m``) -- or of the ego motion when that explains the
 object's points about as well (fitness within ``static_preference``, RMSE within
 ``static_rmse_ratio``; the fitness margin is at least ``static_preference_sigmas`` standard
 errors of a share of the object's points) or well enough (``static_fitness_accept``:
@@ -87,12 +88,14 @@ def _register(p: np.ndarray, src, box: np.ndarray, tgt, T: np.ndarray, c: Object
 
     The first stage registers onto the whole box. Each finer stage registers onto the box's
     points within ``correspondence_m`` + ``FINE_STAGE_SLACK_M`` of the object's current
-    landing (its bounding box): only those can be matched unless the stage moves the object
-    further than the slack, and Open3D builds its KD-tree over the target at every call
-    (1.3 ms for a 7k-point box; the crop holds a fraction of it).
+    landing (its bounding box, :func:`_near_landing`): only those can be matched unless the
+    stage moves the object further than the slack, and Open3D builds its KD-tree over the
+    target at every call (1.3 ms for a 7k-point box; the crop holds a fraction of it).
 
     Point-to-point, not point-to-plane: normals of a few hundred sparse ring points are
-    unreliable (measured: point-to-plane diverged on several simulated objects)."""
+    unreliable (measured: point-to-plane diverged on several simulated objects, and as a
+    last stage of every start it let wrong starts win on the real AV2 pair). See
+    :func:`_polish` for the one point-to-plane step that is used."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -100,9 +103,7 @@ def _register(p: np.ndarray, src, box: np.ndarray, tgt, T: np.ndarray, c: Object
     for stage, max_dist in enumerate(c.correspondence_m):
         target = tgt
         if stage:
-            landing = transform_points(T, p)
-            reach = max_dist + FINE_STAGE_SLACK_M
-            near = box[in_bounds(box, landing.min(axis=0) - reach, landing.max(axis=0) + reach)]
+            near = _near_landing(box, p, T, max_dist)
             if len(near) == 0:  # nothing within reach: no correspondence, T stays (as onto the whole box)
                 continue
             target = _cloud(near)
@@ -110,6 +111,36 @@ def _register(p: np.ndarray, src, box: np.ndarray, tgt, T: np.ndarray, c: Object
                                             criteria).transformation).copy()
     return T
 
+
+def _near_landing(box: np.ndarray, p: np.ndarray, T: np.ndarray, max_dist: float) -> np.ndarray:
+    """The target points of ``box`` within ``max_dist`` + ``FINE_STAGE_SLACK_M`` of the
+    bounding box of ``T p``."""
+    landing = transform_points(T, p)
+    reach = max_dist + FINE_STAGE_SLACK_M
+    return box[in_bounds(box, landing.min(axis=0) - reach, landing.max(axis=0) + reach)]
+
+
+def _polish(p: np.ndarray, src, box: np.ndarray, T: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray | None:
+    """One point-to-plane ICP of ``p`` from ``T`` at the finest correspondence distance, on
+    the normals of the target points near its landing (estimated within
+    ``plane_stage_radius_m``); None when too few target points. Point-to-point converges
+    slowly along the faces an object slides on (its sides pull nothing, so each step moves
+    it by the share of its front and back faces); point-to-plane finishes that slide."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    near = _near_landing(box, p, T, c.correspondence_m[-1])
+    if len(near) < PLANE_STAGE_MIN_TARGET:
+        return None
+    target = _cloud(near)
+    target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=c.plane_stage_radius_m, max_nn=20))
+    criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=c.max_iterations)
+    return np.asarray(reg.registration_icp(src, target, c.correspondence_m[-1], T,
+                                           reg.TransformationEstimationPointToPlane(), criteria).transformation).copy()
+
+
+PLANE_STAGE_MIN_TARGET = 10
+"""Target points the point-to-plane stage needs (fewer: it is skipped)."""
 
 FINE_STAGE_SLACK_M = 0.5
 """How far (m) a finer ICP stage may move an object beyond its correspondence distance and
@@ -142,6 +173,24 @@ def _best_icp(p: np.ndarray, box: np.ndarray, tgt, surface: ScanSurface, starts:
         if best is None or (fitness, -rmse) > (best[1], -best[2]):
             best = (T, fitness, rmse, T_start)
     return best or (starts[0], 0.0, float("inf"), starts[0])
+
+
+def _polished(q: np.ndarray, box: np.ndarray, T: np.ndarray, fitness: float, rmse: float, surface: ScanSurface,
+              T_ego: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
+    """A moving object's motion ``T`` (of its ICP points ``q``; ``fitness``, ``rmse``: its
+    :func:`_score`) after :func:`_polish` with ``plane_stage_radius_m`` > 0, when the polish
+    keeps the object on the ground and fits scan k at least as well; else ``T``. Only the
+    motions kept as an object's own are polished (on real KITTI most objects are static)."""
+    if c.plane_stage_radius_m <= 0 or len(q) < c.plane_stage_min_points:
+        return T
+    polished = _polish(q, _cloud(q), box, T, c)
+    if polished is None:
+        return T
+    centroid = q.mean(axis=0)
+    if _lifted(polished[:3, :3] @ centroid + polished[:3, 3] - (T_ego[:3, :3] @ centroid + T_ego[:3, 3]), c):
+        return T
+    f2, r2 = _score(q, polished, surface, c)
+    return polished if (f2, -r2) >= (fitness, -rmse) else T
 
 
 def _lifted(departure: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
@@ -544,7 +593,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     if fitness >= c.min_fitness and rmse <= c.max_rmse_m and moved_by <= c.max_correction_m:
         record["accepted"] = True
         if not _ego_explains(static_score, fitness, rmse, min(len(p), c.max_icp_points), c):
-            motions.append(T)
+            motions.append(_polished(p[_icp_subset(len(p), c)], box, T, fitness, rmse, surface, T_ego, c))
     moving_part = p[sub][_icp_subset(int(sub.sum()), c)] if mover_starts else None
     joint_on_movers = _score(moving_part, motions[0], surface, c)[0] if mover_starts and motions else 0.0
     # the geometric movers alone, from shifted ego landings -- only when the object's own ICP
@@ -554,7 +603,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         record.update(mover_fitness=fm, mover_rmse_m=rm)
         if fm >= c.min_fitness and rm <= c.max_rmse_m and fm > joint_on_movers + c.static_preference:
             record["accepted"] = True
-            motions.append(Tm)
+            motions.append(_polished(moving_part, box, Tm, fm, rm, surface, T_ego, c))
     if record["accepted"]:
         if motions:
             record["motion"] = motions[0]
