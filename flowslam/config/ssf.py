@@ -199,9 +199,10 @@ class ObjectRefinementConfig(StrictModel):
     max_iterations: int = Field(15, ge=1)
     """ICP iterations per stage."""
     plane_stage_radius_m: float = Field(0.3, ge=0)
-    """> 0: the best ICP result of each object is polished by a point-to-plane ICP at the
-    finest correspondence distance, on target normals estimated within this radius (m),
-    and keeps the polish when that fits scan k at least as well; 0: off."""
+    """> 0: each motion an object keeps as its own (not explained by the ego motion) is
+    polished by one point-to-plane ICP at the finest correspondence distance, on target
+    normals estimated within this radius (m), and keeps the polish when that fits scan k at
+    least as well and keeps the object on the ground; 0: off."""
     plane_stage_min_points: int = Field(300, ge=0)
     """... for motions registered on at least this many points (the normals of sparser
     objects are too rough)."""

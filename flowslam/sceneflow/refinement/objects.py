@@ -99,7 +99,7 @@ def _register(p: np.ndarray, src, box: np.ndarray, tgt, T: np.ndarray, c: Object
     import open3d as o3d
 
     reg = o3d.pipelines.registration
-    criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=c.max_iterations)
+    criteria = _criteria(c)
     for stage, max_dist in enumerate(c.correspondence_m):
         target = tgt
         if stage:
@@ -134,9 +134,16 @@ def _polish(p: np.ndarray, src, box: np.ndarray, T: np.ndarray, c: ObjectRefinem
         return None
     target = _cloud(near)
     target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=c.plane_stage_radius_m, max_nn=20))
-    criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=c.max_iterations)
     return np.asarray(reg.registration_icp(src, target, c.correspondence_m[-1], T,
-                                           reg.TransformationEstimationPointToPlane(), criteria).transformation).copy()
+                                           reg.TransformationEstimationPointToPlane(), _criteria(c)).transformation).copy()
+
+
+def _criteria(c: ObjectRefinementConfig):
+    """The convergence criteria of every object ICP stage (``max_iterations`` per stage)."""
+    import open3d as o3d
+
+    return o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6,
+                                                             max_iteration=c.max_iterations)
 
 
 PLANE_STAGE_MIN_TARGET = 10
@@ -159,8 +166,7 @@ def _best_icp(p: np.ndarray, box: np.ndarray, tgt, surface: ScanSurface, starts:
     """ICP of ``p`` onto the target box ``box`` (``tgt``: its Open3D cloud) from each start;
     the best by (fitness, -RMSE) against ``surface`` of the results that keep the object's
     centroid on the ground (not :func:`_lifted` from its ``T_ego`` landing): (T, fitness,
-    rmse, start). None upright: (the first
-    start, 0, inf, the first start)."""
+    rmse, start). When every result lifts it: (the first start, 0, inf, the first start)."""
     best = None
     src = _cloud(p)
     centroid = p.mean(axis=0)
@@ -509,14 +515,8 @@ def _components(source: np.ndarray, idx: np.ndarray, c: ObjectRefinementConfig) 
     else ``[idx]``."""
     if c.split_extent_m <= 0 or np.hypot(*np.ptp(source[idx, :2], axis=0)) <= c.split_extent_m:
         return [idx]
-    labels = bev_clusters(source[idx], c.instance_cell_m)
-    counts = np.bincount(labels)
-    big = np.flatnonzero(counts >= c.min_points)
-    if len(big) <= 1:
-        return [idx]
-    largest = big[np.argmax(counts[big])]
-    labels = np.where(np.isin(labels, big), labels, largest)
-    return [idx[labels == b] for b in big]
+    labels, big = _joined_components(source[idx], c)
+    return [idx[labels == b] for b in np.sort(big)] if len(big) > 1 else [idx]
 
 
 def _clusters(source: np.ndarray, cand: np.ndarray, c: ObjectRefinementConfig) -> list[np.ndarray]:
@@ -587,13 +587,14 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         return record
     tgt = _cloud(box)
     motions = []  # candidate rigid motions of (parts of) this object besides the ego motion
-    T, fitness, rmse, T_start = _best_icp(p[_icp_subset(len(p), c)], box, tgt, surface, [T0] + mover_starts, T_ego, c)
+    q = p[_icp_subset(len(p), c)]  # the points its ICP registers
+    T, fitness, rmse, T_start = _best_icp(q, box, tgt, surface, [T0] + mover_starts, T_ego, c)
     moved_by = float(np.linalg.norm((T[:3, :3] - R) @ p.mean(axis=0) + T[:3, 3] - T_start[:3, 3]))
     record.update(fitness=fitness, rmse_m=rmse, icp_correction_m=moved_by)
     if fitness >= c.min_fitness and rmse <= c.max_rmse_m and moved_by <= c.max_correction_m:
         record["accepted"] = True
         if not _ego_explains(static_score, fitness, rmse, min(len(p), c.max_icp_points), c):
-            motions.append(_polished(p[_icp_subset(len(p), c)], box, T, fitness, rmse, surface, T_ego, c))
+            motions.append(_polished(q, box, T, fitness, rmse, surface, T_ego, c))
     moving_part = p[sub][_icp_subset(int(sub.sum()), c)] if mover_starts else None
     joint_on_movers = _score(moving_part, motions[0], surface, c)[0] if mover_starts and motions else 0.0
     # the geometric movers alone, from shifted ego landings -- only when the object's own ICP
@@ -664,17 +665,26 @@ def _parts(p: np.ndarray, which: np.ndarray, c: ObjectRefinementConfig) -> np.nd
     n = 0
     for m in np.unique(which):
         sel = np.flatnonzero(which == m)
-        labels = bev_clusters(p[sel], c.instance_cell_m)
-        counts = np.bincount(labels)
-        order = np.argsort(-counts, kind="stable")
-        big = order[counts[order] >= c.min_points]
-        if big.size == 0:
-            big = order[:1]
-        number = np.full(len(counts), n, dtype=np.int64)  # small components: the largest
+        labels, big = _joined_components(p[sel], c)
+        number = np.empty(int(labels.max()) + 1, dtype=np.int64)
         number[big] = n + np.arange(len(big))
         parts[sel] = number[labels]
         n += len(big)
     return parts
+
+
+def _joined_components(p: np.ndarray, c: ObjectRefinementConfig) -> tuple[np.ndarray, np.ndarray]:
+    """BEV connected components of ``instance_cell_m`` of the (M,3) points ``p``: (M,) the
+    component of each point, where those under ``min_points`` have joined the largest, and
+    the labels of the components kept, largest first (the largest alone when none has
+    ``min_points``)."""
+    labels = bev_clusters(p, c.instance_cell_m)
+    counts = np.bincount(labels)
+    order = np.argsort(-counts, kind="stable")
+    big = order[counts[order] >= c.min_points]
+    if big.size == 0:
+        big = order[:1]
+    return np.where(np.isin(labels, big), labels, big[0]), big
 
 
 def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], surface: ScanSurface,
