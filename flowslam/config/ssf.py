@@ -290,10 +290,24 @@ class ObjectRefinementConfig(StrictModel):
     candidate's input-flow landing (a static occluder, not a walker in front or the
     object's own new surface); 0: any return."""
 
+    visible_static_share: float = Field(0.3, ge=0, le=1.01)
+    """An object with no geometric movers and no seen-through points is static, without an
+    ICP, when at least this share of its ego landings is visible in scan k (on its
+    surface, or not behind a return away from the object's own input-flow landing,
+    ``hidden_occluder_m``) and those visible landings alone pass the static acceptance
+    (``static_fitness_accept``, ``static_accept_rmse_m``): where the rest landed scan k has
+    no return, which is no evidence of motion (> 1: never). Fresh simulated ``static`` 213:
+    a parked car half hidden behind a pole was slid along its side at 25 m/s (ego fit 0.58,
+    every off-surface landing behind the pole). Measured (stop 31, 0.3): ``static`` 213 /
+    233 / 173 0.72 / 0.48 / 0.47 % of points called dynamic -> 0.22 / 0.31 / 0.27 %; the
+    real AV2 pair's Dynamic IoU 0.546 -> 0.579; ``dt`` precision up, recall unchanged;
+    ``rush-hour`` 234 / 235 one object of ~400 fewer found (docs/sceneflow_evaluation.md)."""
+
     @property
     def hidden_test(self) -> bool:
-        """Whether the hidden-object test runs (``hidden_static_share`` at most 1)."""
-        return self.hidden_static_share <= 1
+        """Whether a test of hidden ego landings runs (``hidden_static_share`` or
+        ``visible_static_share`` at most 1)."""
+        return self.hidden_static_share <= 1 or self.visible_static_share <= 1
     track_radius_m: float = Field(0.15, ge=0)
     """Points of the next scan this close to a mover's landing spot become candidates
     (mover tracking; 0: no carry-over)."""

@@ -264,8 +264,8 @@ def _ego_explains(static_score: tuple[float, float], fitness: float, rmse: float
     return static_fitness >= fitness - margin and static_rmse <= c.static_rmse_ratio * rmse + 0.005
 
 
-def _hidden_share(ego: np.ndarray, range_image, guesses, c: ObjectRefinementConfig) -> float:
-    """Share of an object's ego landings ``ego`` (frame k) that scan k hides behind
+def _hidden(ego: np.ndarray, range_image, guesses, c: ObjectRefinementConfig) -> np.ndarray:
+    """(M,) bool: which of an object's ego landings ``ego`` (frame k) scan k hides behind
     something static: a return clearly in front of them whose position is not within
     ``hidden_occluder_m`` of a candidate's input-flow landing (``guesses``, a KD-tree, or
     None: any return counts). A walker hidden by another walker, or a car hidden by its
@@ -274,7 +274,35 @@ def _hidden_share(ego: np.ndarray, range_image, guesses, c: ObjectRefinementConf
     if guesses is not None and front.any():
         near = np.isfinite(guesses.query(where[front], distance_upper_bound=c.hidden_occluder_m)[0])
         front[np.flatnonzero(front)[near]] = False
-    return float(front.mean()) if len(front) else 0.0
+    return front
+
+
+def _static_where_hidden(ego: np.ndarray, guess: np.ndarray, surface: ScanSurface, range_image, guesses,
+                         c: ObjectRefinementConfig) -> bool:
+    """Whether scan k's hiding explains why the ego motion does not fit an object (its ego
+    landings ``ego`` and input-flow landings ``guess``, (M,3) frame k): at least
+    ``hidden_static_share`` of the ego landings are :func:`_hidden` (behind something
+    away from every candidate's input-flow landing, ``guesses``), or at least
+    ``visible_static_share`` are visible (on scan k's surface, or not hidden behind
+    something away from the object's own input-flow landing) and those pass the static
+    acceptance on their own
+    (fitness ``static_fitness_accept``, inlier RMSE ``static_accept_rmse_m``). Scan k
+    lacks returns where the rest landed, which is no evidence of motion."""
+    from scipy.spatial import cKDTree
+
+    if not len(ego):
+        return False
+    if c.hidden_static_share <= 1 and _hidden(ego, range_image, guesses, c).mean() >= c.hidden_static_share:
+        return True
+    if c.visible_static_share > 1:
+        return False
+    plane = _plane_distances(ego, surface, c)
+    # on scan k's surface, or not behind something other than the object's own new surface
+    visible = (plane < c.score_plane_m) | ~_hidden(ego, range_image, cKDTree(guess) if c.hidden_occluder_m > 0 else None, c)
+    if visible.mean() < c.visible_static_share:
+        return False
+    fitness, rmse = _fit(plane[visible], c)
+    return fitness >= c.static_fitness_accept and rmse <= c.static_accept_rmse_m
 
 
 def _principal_axis(points: np.ndarray) -> np.ndarray:
@@ -321,8 +349,8 @@ def refine_objects(
     with fewer than ``min_above_ground_points`` such points are road (static, no ICP) and
     moving objects may grow (``grow_max_extent_m``). ``range_image``: a
     :class:`~flowslam.sceneflow.refinement.visibility.RangeImage` of ``target``; with it, an
-    object without geometric movers or seen-through points whose ego landing lies behind
-    something of scan k (``hidden_static_share``) stays static.
+    object without geometric movers or seen-through points stays static when scan k hides
+    where the ego motion puts it (:func:`_static_where_hidden`).
     """
     from scipy.spatial import cKDTree
 
@@ -365,7 +393,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     instance = np.full(len(source), -1, dtype=np.int64)
     clusters = _clusters(source, cand, c)
     guesses = None  # where the candidates land by their input flow: scan k's possible movers
-    if range_image is not None and c.hidden_test and c.hidden_occluder_m > 0 and cand.size:
+    if range_image is not None and c.hidden_static_share <= 1 and c.hidden_occluder_m > 0 and cand.size:
         from scipy.spatial import cKDTree
 
         guesses = cKDTree(source[cand] + flow[cand])
@@ -569,7 +597,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     fits = (static_fitness >= c.static_fitness_accept and static_rmse <= c.static_accept_rmse_m
             and np.count_nonzero(sub) < c.static_accept_max_movers * len(p))
     hidden = (not fits and range_image is not None and c.hidden_test and not sub.any() and not seen.any()
-              and _hidden_share(ego, range_image, guesses, c) >= c.hidden_static_share)
+              and _static_where_hidden(ego, p + flow, surface, range_image, guesses, c))
     if fits or hidden:  # static: skip the ICP
         record["hidden"] = hidden
         record.update(accepted=True, speed_mps=0.0,
