@@ -121,7 +121,7 @@ def test_an_object_that_scan_k_hides_stays_static_with_the_opt_in_test():
     hidden = run(hidden_static_share=0.7)
     assert not hidden.dynamic.any() and hidden.objects[0]["hidden"]
     assert np.allclose(hidden.flow[flagged], geometry.rigid_flow(T_EGO, box))
-    without = run().dynamic[flagged]  # the default: no such test, (part of) it moves
+    without = run(visible_static_share=1.01, hidden_rest_free_share=0.0).dynamic[flagged]  # no test of hidden landings: (part of) it moves
     assert without.mean() > 0.5  # (measured 0.82: the parts its ICP put on the ground)
     assert np.allclose(T_world_k @ np.append(curr[0], 1.0), np.append(ground[0], 1.0))
 
@@ -187,9 +187,10 @@ def test_a_parked_car_half_hidden_by_a_pole_stays_static_when_its_visible_part_f
     prev, curr, flagged, flow, image, hidden_share = _half_hidden_car(0.0, np.random.default_rng(7))
     assert 0.35 < hidden_share < 0.65
     c = ObjectRefinementConfig()
-    run = lambda share: refine_objects(prev, flow, flagged.copy(), curr, T_EGO, DT,
-                                       c.model_copy(update={"visible_static_share": share}),
-                                       above_ground=_above(prev, c), range_image=image)
+    run = lambda share, rest=0.0: refine_objects(prev, flow, flagged.copy(), curr, T_EGO, DT,
+                                                 c.model_copy(update={"visible_static_share": share,
+                                                                      "hidden_rest_free_share": rest}),
+                                                 above_ground=_above(prev, c), range_image=image)
     off = run(1.01)
     assert not off.objects[0].get("hidden", False) and "fitness" in off.objects[0]  # it got an ICP ...
     assert off.dynamic[flagged].mean() > 0.3  # ... and part of it kept the network's 1-m guess
@@ -210,3 +211,23 @@ def test_a_moving_car_half_hidden_by_a_pole_is_not_made_static():
                               range_image=image) for share in (1.01, 0.5)]
     assert not any(o.get("hidden", False) for o in results[1].objects)
     assert np.array_equal(results[0].dynamic, results[1].dynamic) and results[1].dynamic[flagged].mean() > 0.5
+
+
+def test_leftover_network_movers_hidden_in_scan_k_are_static_unless_their_cluster_moved():
+    """The network's dynamic points that no object takes (here: no cluster is big enough,
+    ``min_points``) stay dynamic when their ego landing finds no scan-k point. Behind a
+    static pole that is missing data, not motion: they become
+    static (``hidden_rest_free_share``), unless their BEV cluster has landings in view and
+    off the surface (a mover's visible part): the driving car keeps its hidden half dynamic."""
+    c = ObjectRefinementConfig(min_points=100_000)
+    rest = {"hidden_rest_free_share": 0.1}
+    for shift, off, on in ((0.0, lambda d: 0.3 < d.mean() < 0.7, lambda d: not d.any()),
+                           (1.0, lambda d: d.mean() > 0.7, lambda d: d.mean() > 0.7)):
+        prev, curr, flagged, flow, image, _ = _half_hidden_car(shift, np.random.default_rng(7))
+        run = lambda **o: refine_objects(prev, flow, flagged.copy(), curr, T_EGO, DT, c.model_copy(update=o),
+                                         above_ground=_above(prev, c), range_image=image)
+        without, with_test = run(hidden_rest_free_share=0.0), run(**rest)
+        assert without.objects == [] and with_test.objects == []
+        assert off(without.dynamic[flagged]) and on(with_test.dynamic[flagged]), shift
+        if shift:  # with no cluster guard the driving car's hidden half would turn static
+            assert run(hidden_rest_free_share=1.01).dynamic[flagged].mean() < 0.5

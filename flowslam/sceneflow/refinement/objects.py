@@ -277,6 +277,30 @@ def _hidden(ego: np.ndarray, range_image, guesses, c: ObjectRefinementConfig) ->
     return front
 
 
+def _hidden_points(ego: np.ndarray, guess: np.ndarray, range_image, c: ObjectRefinementConfig) -> np.ndarray:
+    """(M,) bool: points whose ego landing ``ego`` (frame k) scan k hides behind a return
+    farther than ``hidden_occluder_m`` from the point's own input-flow landing ``guess``."""
+    front, where = range_image.in_front(ego)
+    return front & (np.linalg.norm(where - guess, axis=1) > c.hidden_occluder_m)
+
+
+def _hidden_rest(p: np.ndarray, ego: np.ndarray, flow: np.ndarray, on_surface: np.ndarray, evidence: np.ndarray,
+                 range_image, c: ObjectRefinementConfig) -> np.ndarray:
+    """(M,) bool: which of the network's leftover dynamic points ``p`` (frame k-1; ``ego``
+    their ego landings, ``on_surface`` whether those are on scan k's surface, ``evidence``
+    geometric movers or seen-through) scan k hides (:func:`_hidden_points`) within a BEV
+    cluster (``cluster_cell_m``) whose other off-surface landings are mostly hidden too:
+    less than ``hidden_rest_free_share`` of it lands in view and off scan k's surface, where
+    a mover's visible part would have gone (points of clusters cut by ``max_range_m`` or
+    too small for an object, and of objects whose ICP was not accepted)."""
+    hidden = ~evidence & _hidden_points(ego, p + flow, range_image, c)
+    if not hidden.any():
+        return hidden
+    labels = bev_clusters(p, c.cluster_cell_m)
+    free = np.bincount(labels, weights=~on_surface & ~hidden) / np.bincount(labels)
+    return hidden & (free[labels] < c.hidden_rest_free_share)
+
+
 def _static_where_hidden(ego: np.ndarray, guess: np.ndarray, surface: ScanSurface, range_image, guesses,
                          c: ObjectRefinementConfig) -> bool:
     """Whether scan k's hiding explains why the ego motion does not fit an object (its ego
@@ -429,6 +453,9 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     if rest.size:
         rigid = transform_points(T_ego, source[rest])
         on_surface = np.isfinite(target_tree.query(rigid, distance_upper_bound=c.off_surface_m)[0])
+        if range_image is not None and c.hidden_rest_free_share > 0:
+            on_surface |= _hidden_rest(source[rest], rigid, flow[rest], on_surface, movers[rest] | seen[rest],
+                                       range_image, c)
         dynamic[rest[on_surface]] = False
     static = ~dynamic & ~settled
     flow[static] = rigid_flow(T_ego, source[static])
