@@ -17,6 +17,14 @@ STEP = 0.1  # surface sampling (m)
 RNG = np.random.default_rng(7)
 
 
+@pytest.fixture(autouse=True)
+def _same_samples_whatever_ran_before():
+    """Every test samples its surfaces from the same seed, so that its scene does not
+    depend on which tests ran before it (``pytest -k``, a new test above it)."""
+    global RNG
+    RNG = np.random.default_rng(7)
+
+
 def _grid(a: np.ndarray, b: np.ndarray, origin: np.ndarray) -> np.ndarray:
     """Random points on the parallelogram origin + s a + t b, s, t in [0, 1), one per
     STEP x STEP on average: each scan samples the surfaces afresh, as a sensor does (a
@@ -274,12 +282,33 @@ def test_a_bus_sliding_along_its_side_with_many_movers_gets_its_icp():
     assert not shortcut.dynamic[bus].any()
 
 
+def test_a_bus_with_a_fifth_of_it_movers_gets_its_icp_too():
+    """The same bus with only its front 4 m as geometric movers (21 % of its points: fresh
+    simulated ``rush-hour`` 234, a car 2.7 m beside the ego had 27 % movers and 1,265
+    seen-through points, and the 30 % limit of stop 30 called its 28,080 points static
+    with 0.55 m of error each): with the default ``static_accept_max_movers`` (0.15) it
+    gets its ICP and moves 0.5 m; with 0.3 it takes the static shortcut."""
+    prev, curr, labels = _bus_pair(0.5)
+    bus = labels == 1
+    flow = np.zeros_like(prev)
+    flow[bus] = [0.35, 0.0, 0.0]
+    movers = bus & (prev[:, 0] > 10.0)
+    assert 0.15 < movers.sum() / bus.sum() < 0.3
+    run = lambda **o: refine_objects(prev, flow, bus, curr, np.eye(4), DT, ObjectRefinementConfig(**o), movers=movers)
+    default = run()
+    assert default.dynamic[bus].mean() > 0.95
+    assert np.abs(default.flow[bus & default.dynamic] - [0.5, 0.0, 0.0]).max() < 0.03
+    assert not run(static_accept_max_movers=0.3).dynamic[bus].any()
+
+
 def test_an_object_is_not_lifted_onto_a_copy_of_itself_above():
     """A walker-sized box leaves its spot between two scans of a standing sensor, and scan k
     holds the same box 0.7 m higher (on a ledge) within the ICP's 1 m reach: the ICP lifts
-    the object onto it with fitness 1, but objects move on the ground, so that motion is
-    refused (``vertical_margin_m``) and no object is accepted; with no vertical limit a
-    motion that lifts it is taken."""
+    the object onto it with fitness 1 (from the network's guess, which points there), but
+    objects move on the ground, so that motion is refused (``vertical_margin_m``) and no
+    object is accepted; with no vertical limit the motion that lifts it is taken. (From a
+    zero guess the ICP mostly stays on the road: whether it climbed to the copy depended
+    on the random samples, so the guess now starts it there.)"""
     road = _grid(np.array([30.0, 0, 0]), np.array([0, 12.0, 0]), np.array([-5.0, -6.0, -0.01]))
     person = _box(6.0, -2.0, (0.5, 0.5, 1.7))
     prev = np.concatenate([road, person])
@@ -287,11 +316,11 @@ def test_an_object_is_not_lifted_onto_a_copy_of_itself_above():
                            _box(6.0, -2.0, (0.5, 0.5, 1.7)) + [0.0, 0.0, 0.7]])
     dynamic = np.arange(len(prev)) >= len(road)
     flow = np.zeros_like(prev)
+    flow[dynamic, 2] = 0.7  # the network's guess: the copy above
     args = (prev, flow, dynamic, curr, np.eye(4), DT)
     kept = refine_objects(*args, ObjectRefinementConfig())
     lifted = refine_objects(*args, ObjectRefinementConfig(vertical_margin_m=10.0))
     assert not any(o["accepted"] for o in kept.objects)
-    assert np.abs(kept.flow[dynamic, 2]).max() < 1e-9
     accepted = [o for o in lifted.objects if o["accepted"]]
     assert len(accepted) == 1 and accepted[0]["fitness"] > 0.9
     assert np.median(lifted.flow[dynamic & lifted.dynamic, 2]) > 0.3
