@@ -445,7 +445,8 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
             flow[extra], dynamic[extra], settled[extra], instance[extra] = landing - source[extra], moving, True, i
             motion_of[extra] = 0
             objects[i]["grown_points"] = int(len(extra))
-    still = _split_instances(source, flow, dynamic & settled, instance, motion_of, objects, T_ego, interval, surface, c)
+    still = _split_instances(source, flow, dynamic & settled, instance, motion_of, objects, T_ego, interval, surface, c,
+                             range_image if c.split_visible else None, seen)
     flow[still], dynamic[still] = rigid_flow(T_ego, source[still]), False
     # the rest of the network's dynamic points: static if the ego motion lands them on a surface
     rest = np.flatnonzero(dynamic & ~settled)
@@ -673,7 +674,8 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
 
 def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, instance: np.ndarray,
                      motion_of: np.ndarray, objects: list[dict], T_ego: np.ndarray, interval: float,
-                     surface: ScanSurface, c: ObjectRefinementConfig) -> np.ndarray:
+                     surface: ScanSurface, c: ObjectRefinementConfig, range_image=None,
+                     seen: np.ndarray | None = None) -> np.ndarray:
     """Split every object's ``moving`` points into instances (:func:`_parts`: by the motion
     they took, ``motion_of``, then by ``instance_cell_m`` components); part 0 keeps the
     object's entry and ``instance`` id, each further part gets a new entry (``part_of``)
@@ -681,7 +683,9 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
     its own landings do (:func:`_ego_explains` on scan k's ``surface``) stays static: a
     parked car merged into a passing truck's cluster, or a hedge merged with a walker,
     slides along itself under the other's motion. Returns the points of such parts
-    (static; they keep the object's ``instance``). Speeds (m/s) are the parts' median
+    (static; they keep the object's ``instance``). With ``range_image`` (scan k's), a part
+    with fewer than ``min_seen_through`` ``seen`` points is compared on its visible ego
+    landings only (``split_visible``). Speeds (m/s) are the parts' median
     departure from the ego landing (``flow`` against ``T_ego``'s) over ``interval`` s
     (0 for an object whose part 0 stays static)."""
     still = np.zeros(len(source), dtype=bool)
@@ -698,8 +702,17 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
         for part in range(int(parts.max()) + 1):
             sel = members[parts == part]
             mine = idx[sel]
-            landed = _fit(_plane_distances(source[mine] + flow[mine], surface, c), c)
-            if _ego_explains(_fit(_plane_distances(ego[sel], surface, c), c), *landed, len(mine), c):
+            landing = source[mine] + flow[mine]
+            ego_plane, own_plane = _plane_distances(ego[sel], surface, c), _plane_distances(landing, surface, c)
+            if range_image is not None and np.count_nonzero(seen[mine]) < c.min_seen_through:
+                from scipy.spatial import cKDTree
+
+                # ego landings hidden behind something other than the part's own new surface
+                # count for neither side: scan k cannot tell where those points went
+                visible = (ego_plane < c.score_plane_m) | ~_hidden(ego[sel], range_image, cKDTree(landing), c)
+                ego_plane, own_plane = ego_plane[visible], own_plane[visible]
+            landed = _fit(own_plane, c)
+            if len(own_plane) and _ego_explains(_fit(ego_plane, c), *landed, len(own_plane), c):
                 still[mine] = True
                 continue
             if part == 0:
