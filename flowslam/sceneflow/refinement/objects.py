@@ -301,6 +301,17 @@ def _hidden_rest(p: np.ndarray, ego: np.ndarray, flow: np.ndarray, on_surface: n
     return hidden & (free[labels] < c.hidden_rest_free_share)
 
 
+def _visible(ego: np.ndarray, ego_plane: np.ndarray, guess: np.ndarray, range_image,
+             c: ObjectRefinementConfig) -> np.ndarray:
+    """(M,) bool: which ego landings ``ego`` (frame k; ``ego_plane`` their
+    :func:`_plane_distances`) scan k sees: on its surface, or not :func:`_hidden` behind a
+    return away from the object's (or part's) own input-flow landings ``guess`` (M,3)."""
+    from scipy.spatial import cKDTree
+
+    own = cKDTree(guess) if c.hidden_occluder_m > 0 else None
+    return (ego_plane < c.score_plane_m) | ~_hidden(ego, range_image, own, c)
+
+
 def _static_where_hidden(ego: np.ndarray, guess: np.ndarray, surface: ScanSurface, range_image, guesses,
                          c: ObjectRefinementConfig) -> bool:
     """Whether scan k's hiding explains why the ego motion does not fit an object (its ego
@@ -312,8 +323,6 @@ def _static_where_hidden(ego: np.ndarray, guess: np.ndarray, surface: ScanSurfac
     acceptance on their own
     (fitness ``static_fitness_accept``, inlier RMSE ``static_accept_rmse_m``). Scan k
     lacks returns where the rest landed, which is no evidence of motion."""
-    from scipy.spatial import cKDTree
-
     if not len(ego):
         return False
     if c.hidden_static_share <= 1 and _hidden(ego, range_image, guesses, c).mean() >= c.hidden_static_share:
@@ -321,8 +330,7 @@ def _static_where_hidden(ego: np.ndarray, guess: np.ndarray, surface: ScanSurfac
     if c.visible_static_share > 1:
         return False
     plane = _plane_distances(ego, surface, c)
-    # on scan k's surface, or not behind something other than the object's own new surface
-    visible = (plane < c.score_plane_m) | ~_hidden(ego, range_image, cKDTree(guess) if c.hidden_occluder_m > 0 else None, c)
+    visible = _visible(ego, plane, guess, range_image, c)
     if visible.mean() < c.visible_static_share:
         return False
     fitness, rmse = _fit(plane[visible], c)
@@ -705,11 +713,9 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
             landing = source[mine] + flow[mine]
             ego_plane, own_plane = _plane_distances(ego[sel], surface, c), _plane_distances(landing, surface, c)
             if range_image is not None and np.count_nonzero(seen[mine]) < c.min_seen_through:
-                from scipy.spatial import cKDTree
-
                 # ego landings hidden behind something other than the part's own new surface
                 # count for neither side: scan k cannot tell where those points went
-                visible = (ego_plane < c.score_plane_m) | ~_hidden(ego[sel], range_image, cKDTree(landing), c)
+                visible = _visible(ego[sel], ego_plane, landing, range_image, c)
                 ego_plane, own_plane = ego_plane[visible], own_plane[visible]
             landed = _fit(own_plane, c)
             if len(own_plane) and _ego_explains(_fit(ego_plane, c), *landed, len(own_plane), c):
