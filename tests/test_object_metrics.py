@@ -35,6 +35,24 @@ def test_the_largest_overlap_is_the_candidate():
     assert match_instances(pred, gt, min_cover=0.6)[0] == {}  # 55 % < 60 %
 
 
+def test_an_instance_under_min_points_finds_a_small_object_but_is_no_predicted_object():
+    # GT object 1: 56 points (a walker at range); predicted 3 holds 45 of them -> cover and
+    # IoU 45/56: found, although 45 < 50 points makes 3 no predicted object
+    # predicted 4: 30 background points, also under 50: neither found nor counted
+    gt = _ids((1, 56), (-1, 30))
+    pred = _ids((3, 45), (-1, 11), (4, 30))
+    found, gt_objects, pred_objects = match_instances(pred, gt)
+    assert found == {1: 3} and gt_objects == [1] and pred_objects == []
+    scores = ObjectScores()
+    scores.add(pred, gt, {}, {}, {})
+    r = scores.result()
+    assert r["recall"] == 1.0 and r["predicted_objects"] == 0 and r["precision"] is None
+    # with a 60-point false object beside it, precision is 0 of 1 (the small finder is not counted)
+    scores.add(np.concatenate([pred, np.full(60, 9)]), np.concatenate([gt, np.full(60, -1)]), {}, {}, {})
+    r = scores.result()
+    assert r["recall"] == 1.0 and r["predicted_objects"] == 1 and r["precision"] == 0.0
+
+
 def test_object_scores_recall_precision_velocity_and_id_switches():
     scores = ObjectScores()
     gt = _ids((1, 100), (2, 100))

@@ -6,10 +6,13 @@ Definitions (per scan pair; points of scan k-1):
 - a **GT object** is a GT instance with at least ``min_points`` GT-dynamic points; a
   **predicted object** is a predicted instance with at least ``min_points`` points the
   method calls dynamic;
-- a GT object is **found** when one predicted object covers at least ``min_cover`` of
-  its points with an IoU of at least ``min_iou`` (point sets; the predicted object with
-  the largest overlap is the candidate). **Recall** = found / GT objects; **precision** =
-  predicted objects that found a GT object / predicted objects;
+- a GT object is **found** when one predicted instance (of any size) covers at least
+  ``min_cover`` of its points with an IoU of at least ``min_iou`` (point sets; the
+  instance with the largest overlap is the candidate). **Recall** = found / GT objects;
+  **precision** = predicted objects that found a GT object / predicted objects (an
+  instance under ``min_points`` may find a GT object but is not a predicted object: a
+  50-point walker covered by a 45-point instance is found, and no fragment of a few
+  points counts against precision);
 - for a found object, the **speed error** is ``| |v| - |v_gt| |`` and the **velocity
   error** ``|v - v_gt|`` (m/s), each velocity the mean ego-compensated flow of the
   object's dynamic points / dt (:func:`flowslam.moving_objects.moving_objects`; the
@@ -28,8 +31,8 @@ __all__ = ["ObjectScores", "match_instances"]
 
 def match_instances(pred: np.ndarray, gt: np.ndarray, min_points: int = 50, min_cover: float = 0.5,
                     min_iou: float = 0.5) -> tuple[dict[int, int], list[int], list[int]]:
-    """Found GT objects of one pair (module doc): {GT id: predicted id}, the GT objects and
-    the predicted objects (ids with at least ``min_points`` points). ``pred``, ``gt``: (N,)
+    """Found GT objects of one pair (module doc): {GT id: predicted instance id}, the GT
+    objects and the predicted objects (ids with at least ``min_points`` points). ``pred``, ``gt``: (N,)
     int instance ids per point, -1 for none (static points already set to -1)."""
     pred, gt = np.asarray(pred, np.int64), np.asarray(gt, np.int64)
     gt_ids, gt_counts = np.unique(gt[gt >= 0], return_counts=True)
@@ -41,7 +44,7 @@ def match_instances(pred: np.ndarray, gt: np.ndarray, min_points: int = 50, min_
     pairs, overlap = np.unique(np.stack([gt[both], pred[both]], axis=1).reshape(-1, 2), axis=0, return_counts=True)
     best: dict[int, tuple[int, int]] = {}  # GT id -> (overlap, predicted id) of the largest overlap
     for (g, p), n in zip(pairs.tolist(), overlap.tolist()):
-        if pred_size[p] >= min_points and n > best.get(g, (0, -1))[0]:
+        if n > best.get(g, (0, -1))[0]:
             best[g] = (n, p)
     found: dict[int, int] = {}
     for g in gt_objects:
@@ -72,7 +75,7 @@ class ObjectScores:
         self.gt_objects += len(gt_objects)
         self.found += len(found)
         self.pred_objects += len(pred_objects)
-        self.true_pred += len(set(found.values()))
+        self.true_pred += len(set(found.values()) & set(pred_objects))
         for g, p in found.items():
             if p in velocity and g in gt_velocity:
                 v, v_gt = np.asarray(velocity[p]), np.asarray(gt_velocity[g])
