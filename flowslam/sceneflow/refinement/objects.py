@@ -693,7 +693,8 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
     slides along itself under the other's motion. Returns the points of such parts
     (static; they keep the object's ``instance``). With ``range_image`` (scan k's), a part
     with fewer than ``min_seen_through`` ``seen`` points is compared on its visible ego
-    landings only (``split_visible``). Speeds (m/s) are the parts' median
+    landings only (``split_visible``). A moving part holding several people (``split_people``,
+    :func:`_people`) becomes one instance per person. Speeds (m/s) are the parts' median
     departure from the ego landing (``flow`` against ``T_ego``'s) over ``interval`` s
     (0 for an object whose part 0 stays static)."""
     still = np.zeros(len(source), dtype=bool)
@@ -721,12 +722,16 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
             if len(own_plane) and _ego_explains(_fit(ego_plane, c), *landed, len(own_plane), c):
                 still[mine] = True
                 continue
-            if part == 0:
-                objects[own]["speed_mps"] = float(np.median(departure[sel]))
-                continue
-            instance[mine] = len(objects)
-            objects.append({"points": int(len(mine)), "part_of": own, "accepted": True,
-                            "speed_mps": float(np.median(departure[sel]))})
+            # a moving part is one instance, or one per person (a crowd); the people split
+            # only numbers instances, it decides nothing about motion
+            groups = _people(source[mine], c) if c.split_people else [np.arange(len(mine))]
+            for g, group in enumerate(groups):
+                speed = float(np.median(departure[sel[group]]))
+                if part == 0 and g == 0:
+                    objects[own]["speed_mps"] = speed
+                    continue
+                instance[mine[group]] = len(objects)
+                objects.append({"points": int(len(group)), "part_of": own, "accepted": True, "speed_mps": speed})
     return still
 
 
@@ -745,6 +750,62 @@ def _parts(p: np.ndarray, which: np.ndarray, c: ObjectRefinementConfig) -> np.nd
         parts[sel] = number[labels]
         n += len(big)
     return parts
+
+
+HEAD_CELL_M = 0.15
+"""BEV cell (m) of the height map (highest point per cell) the heads are found in."""
+HEAD_PROMINENCE_M = 0.12
+"""A head is a cell higher than every cell within two cells of it (0.3 m: heads are
+farther apart), by this much (m) than every cell exactly two cells away (shoulders and
+arms): a flat top (a box, a car's roof) has no head."""
+PERSON_MAX_EXTENT_M = 1.2
+"""A group of people is split only when each person is at most this wide (BEV diagonal, m)."""
+
+
+def _people(p: np.ndarray, c: ObjectRefinementConfig) -> list[np.ndarray]:
+    """The (M,3) moving points ``p`` (sensor frame, z up, m) of one instance as groups of
+    people, one per head (index arrays, the largest first), or ``[all]``: walkers close
+    together touch in BEV. Heads are local maxima of a BEV height map that stand out from
+    the cells around them (:func:`_heads`); every point goes to its nearest head. Split
+    only when the instance is wider than ``PERSON_MAX_EXTENT_M``, has at least two heads,
+    and every group holds ``min_points`` points and is at most that wide."""
+    whole = [np.arange(len(p))]
+    if len(p) < 2 * c.min_points or np.hypot(*np.ptp(p[:, :2], axis=0)) <= PERSON_MAX_EXTENT_M:
+        return whole
+    heads = _heads(p)
+    if len(heads) < 2:
+        return whole
+    near = np.argmin(((p[:, None, :2] - heads[None, :, :]) ** 2).sum(axis=2), axis=1)
+    counts = np.bincount(near, minlength=len(heads))
+    if counts.min() < c.min_points or bev_extent(p[:, :2], near, len(heads)).max() > PERSON_MAX_EXTENT_M:
+        return whole
+    return [np.flatnonzero(near == h) for h in np.argsort(-counts, kind="stable")]
+
+
+def _heads(q: np.ndarray) -> np.ndarray:
+    """(H,2) BEV positions of the heads among the (M,3) points ``q``
+    (``HEAD_CELL_M``, ``HEAD_PROMINENCE_M``)."""
+    from scipy.ndimage import maximum_filter
+
+    lo = q[:, :2].min(axis=0)
+    ij = np.floor((q[:, :2] - lo) / HEAD_CELL_M).astype(np.int64)
+    height = np.full(tuple(ij.max(axis=0) + 1), -np.inf)
+    np.maximum.at(height, (ij[:, 0], ij[:, 1]), q[:, 2])
+    ring = np.ones((5, 5), dtype=bool)
+    ring[1:4, 1:4] = False
+    near = maximum_filter(height, size=5, mode="constant", cval=-np.inf)
+    around = maximum_filter(height, footprint=ring, mode="constant", cval=-np.inf)
+    standing = np.isfinite(around) & (height - np.where(np.isfinite(around), around, 0.0) >= HEAD_PROMINENCE_M)
+    cells = np.argwhere(np.isfinite(height) & (height == near) & standing)
+    kept: list[np.ndarray] = []  # one per head: a head across two cells ties with itself
+    for cell in cells[np.argsort(-height[tuple(cells.T)], kind="stable")]:
+        if all(np.abs(cell - k).max() > 2 for k in kept):
+            kept.append(cell)
+    heads = []
+    for cell in kept:  # the centroid of the head: its points within 0.1 m of its top
+        top = (np.abs(ij - cell).max(axis=1) <= 1) & (q[:, 2] >= height[tuple(cell)] - 0.1)
+        heads.append(q[top, :2].mean(axis=0))
+    return np.array(heads).reshape(-1, 2)
 
 
 def _joined_components(p: np.ndarray, c: ObjectRefinementConfig) -> tuple[np.ndarray, np.ndarray]:
