@@ -60,7 +60,7 @@ import numpy as np
 
 from flowslam.geometry import rigid_flow, transform_points
 from flowslam.config.ssf import ObjectRefinementConfig
-from flowslam.sceneflow.refinement.clusters import ScanSurface, bev_clusters, bev_extent, in_bounds
+from flowslam.sceneflow.refinement.clusters import ScanSurface, bev_clusters, bev_extent, in_bounds, lowest_per_cell
 
 __all__ = ["ObjectRefinement", "refine_objects"]
 
@@ -789,8 +789,9 @@ def _heads(q: np.ndarray) -> np.ndarray:
 
     lo = q[:, :2].min(axis=0)
     ij = np.floor((q[:, :2] - lo) / HEAD_CELL_M).astype(np.int64)
-    height = np.full(tuple(ij.max(axis=0) + 1), -np.inf)
-    np.maximum.at(height, (ij[:, 0], ij[:, 1]), q[:, 2])
+    shape = tuple(ij.max(axis=0) + 1)
+    ids = ij[:, 0] * shape[1] + ij[:, 1]
+    height = -lowest_per_cell(ids, -q[:, 2], shape[0] * shape[1]).reshape(shape)  # highest z per cell, -inf: none
     ring = np.ones((5, 5), dtype=bool)
     ring[1:4, 1:4] = False
     near = maximum_filter(height, size=5, mode="constant", cval=-np.inf)
