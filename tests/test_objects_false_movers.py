@@ -8,7 +8,7 @@ import numpy as np
 from flowslam import geometry
 from flowslam.config import ObjectRefinementConfig
 from flowslam.sceneflow.refinement.clusters import LocalGround
-from flowslam.sceneflow.refinement.objects import _ego_explains, refine_objects
+from flowslam.sceneflow.refinement.objects import _ego_explains, _pick, refine_objects
 
 DT = 0.1
 HEIGHT = 1.73  # sensor above the flat ground (m)
@@ -267,3 +267,30 @@ def test_a_parked_car_hidden_by_a_passing_car_of_its_cluster_stays_static():
     assert not visible_only.dynamic[label == 1].any()
     assert visible_only.dynamic[label == 2].mean() > 0.8  # the passing car still moves
     assert np.array_equal(visible_only.dynamic[label == 2], all_landings.dynamic[label == 2])
+
+
+def _shifted(dx: float) -> np.ndarray:
+    """A motion that moves points by ``dx`` m along x."""
+    T = np.eye(4)
+    T[0, 3] = dx
+    return T
+
+
+def test_an_icp_start_that_slides_the_object_further_must_fit_clearly_better():
+    """Object ICP results (T, fitness, RMSE, start), the first from the network's
+    displacement: with 1,000 points the margin is max(0.03, 2 sqrt(0.99 x 0.01 / 1000))
+    = 0.03 of fitness. A start that slides the object 15 cm further with 0.004 more
+    fitness (fresh simulated `rush-hour` 234: a car beside the ego) does not replace the
+    first; one with 0.10 more than a first of 0.85 does; one that lands the object within 3 cm of the first is
+    the same solution and keeps the plain (fitness, -RMSE) choice."""
+    c = ObjectRefinementConfig()
+    p = np.random.default_rng(0).uniform(-2.0, 2.0, (1000, 3))
+    first = (_shifted(0.80), 0.990, 0.0120, _shifted(0.80))
+    slid = (_shifted(0.95), 0.994, 0.0137, _shifted(1.20))
+    assert _pick([first, slid], p, True, c) is first
+    assert _pick([first, slid], p, False, c) is slid
+    poor = (_shifted(0.80), 0.85, 0.0200, _shifted(0.80))  # margin max(0.03, 0.023)
+    clearly = (_shifted(0.95), 0.95, 0.0137, _shifted(1.20))
+    assert _pick([poor, clearly], p, True, c) is clearly
+    same = (_shifted(0.82), 0.994, 0.0125, _shifted(1.20))
+    assert _pick([first, same], p, True, c) is same

@@ -146,6 +146,10 @@ def _criteria(c: ObjectRefinementConfig):
                                                              max_iteration=c.max_iterations)
 
 
+SAME_SOLUTION_M = 0.03
+"""Two ICP results whose landings of an object differ by at most this on average (m) are
+one solution (:func:`_best_icp`)."""
+
 PLANE_STAGE_MIN_TARGET = 10
 """Target points the point-to-plane stage needs (fewer: it is skipped)."""
 
@@ -162,12 +166,13 @@ def _cloud(points: np.ndarray):
 
 
 def _best_icp(p: np.ndarray, box: np.ndarray, tgt, surface: ScanSurface, starts: list[np.ndarray],
-              T_ego: np.ndarray, c: ObjectRefinementConfig):
+              T_ego: np.ndarray, c: ObjectRefinementConfig, prefer_first: bool = False):
     """ICP of ``p`` onto the target box ``box`` (``tgt``: its Open3D cloud) from each start;
-    the best by (fitness, -RMSE) against ``surface`` of the results that keep the object's
-    centroid on the ground (not :func:`_lifted` from its ``T_ego`` landing): (T, fitness,
-    rmse, start). When every result lifts it: (the first start, 0, inf, the first start)."""
-    best = None
+    the best (:func:`_pick`, ``prefer_first``) by fitness and RMSE against ``surface`` of the
+    results that keep the object's centroid on the ground (not :func:`_lifted` from its
+    ``T_ego`` landing): (T, fitness, rmse, start). When every result lifts it: (the first
+    start, 0, inf, the first start)."""
+    results = []
     src = _cloud(p)
     centroid = p.mean(axis=0)
     ego_centroid = T_ego[:3, :3] @ centroid + T_ego[:3, 3]
@@ -175,10 +180,26 @@ def _best_icp(p: np.ndarray, box: np.ndarray, tgt, surface: ScanSurface, starts:
         T = _register(p, src, box, tgt, T_start, c)
         if _lifted(T[:3, :3] @ centroid + T[:3, 3] - ego_centroid, c):
             continue
-        fitness, rmse = _score(p, T, surface, c)
-        if best is None or (fitness, -rmse) > (best[1], -best[2]):
-            best = (T, fitness, rmse, T_start)
-    return best or (starts[0], 0.0, float("inf"), starts[0])
+        results.append((T, *_score(p, T, surface, c), T_start))
+    if not results:
+        return starts[0], 0.0, float("inf"), starts[0]
+    return _pick(results, p, prefer_first and results[0][3] is starts[0], c)
+
+
+def _pick(results: list[tuple], p: np.ndarray, prefer_first: bool, c: ObjectRefinementConfig) -> tuple:
+    """The best of an object's ICP ``results`` ((T, fitness, rmse, start), in the order of
+    their starts; ``p``: the registered points, frame k-1) by (fitness, -RMSE); with
+    ``prefer_first``, the first result instead when the best one has at most
+    :func:`_fitness_margin` more fitness and lands ``p`` elsewhere (by more than
+    ``SAME_SOLUTION_M`` on average): a vehicle sliding along its own side fits scan k about
+    as well anywhere along the slide, and the first start (the network's or the track's
+    displacement) is the better guess there."""
+    best = max(results, key=lambda r: (r[1], -r[2]))
+    first = results[0]
+    if not prefer_first or best is first or best[1] > first[1] + _fitness_margin(first[1], len(p), c):
+        return best
+    apart = np.linalg.norm(transform_points(best[0], p) - transform_points(first[0], p), axis=1).mean()
+    return first if apart > SAME_SOLUTION_M else best
 
 
 def _polished(q: np.ndarray, box: np.ndarray, T: np.ndarray, fitness: float, rmse: float, surface: ScanSurface,
@@ -260,8 +281,14 @@ def _ego_explains(static_score: tuple[float, float], fitness: float, rmse: float
     of 15 is 0.067 of fitness) and its inlier RMSE at most ``static_rmse_ratio`` times the
     ICP's + 5 mm."""
     static_fitness, static_rmse = static_score
-    margin = max(c.static_preference, c.static_preference_sigmas * float(np.sqrt(fitness * (1.0 - fitness) / max(n, 1))))
-    return static_fitness >= fitness - margin and static_rmse <= c.static_rmse_ratio * rmse + 0.005
+    return static_fitness >= fitness - _fitness_margin(fitness, n, c) and static_rmse <= c.static_rmse_ratio * rmse + 0.005
+
+
+def _fitness_margin(fitness: float, n: int, c: ObjectRefinementConfig) -> float:
+    """How much more fitness than ``fitness`` (measured on ``n`` points) is evidence:
+    ``static_preference``, or ``static_preference_sigmas`` standard errors of a share of
+    ``n`` points if more."""
+    return max(c.static_preference, c.static_preference_sigmas * float(np.sqrt(fitness * (1.0 - fitness) / max(n, 1))))
 
 
 def _hidden(ego: np.ndarray, range_image, guesses, c: ObjectRefinementConfig) -> np.ndarray:
@@ -652,7 +679,8 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     tgt = _cloud(box)
     motions = []  # candidate rigid motions of (parts of) this object besides the ego motion
     q = p[_icp_subset(len(p), c)]  # the points its ICP registers
-    T, fitness, rmse, T_start = _best_icp(q, box, tgt, surface, [T0] + mover_starts, T_ego, c)
+    T, fitness, rmse, T_start = _best_icp(q, box, tgt, surface, [T0] + mover_starts, T_ego, c,
+                                          prefer_first=c.prefer_first_start)
     moved_by = float(np.linalg.norm((T[:3, :3] - R) @ p.mean(axis=0) + T[:3, 3] - T_start[:3, 3]))
     record.update(fitness=fitness, rmse_m=rmse, icp_correction_m=moved_by)
     if fitness >= c.min_fitness and rmse <= c.max_rmse_m and moved_by <= c.max_correction_m:
@@ -664,7 +692,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     # the geometric movers alone, from shifted ego landings -- only when the object's own ICP
     # does not already explain them (no fitness, at most 1, can then beat its by static_preference)
     if mover_starts and joint_on_movers + c.static_preference < 1.0:
-        Tm, fm, rm, _ = _best_icp(moving_part, box, tgt, surface, mover_starts + [T0], T_ego, c)
+        Tm, fm, rm, _ = _best_icp(moving_part, box, tgt, surface, mover_starts + [T0], T_ego, c, prefer_first=False)
         record.update(mover_fitness=fm, mover_rmse_m=rm)
         if fm >= c.min_fitness and rm <= c.max_rmse_m and fm > joint_on_movers + c.static_preference:
             record["accepted"] = True
