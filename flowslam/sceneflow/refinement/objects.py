@@ -206,8 +206,11 @@ def _polished(q: np.ndarray, box: np.ndarray, T: np.ndarray, fitness: float, rms
               T_ego: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
     """A moving object's motion ``T`` (of its ICP points ``q``; ``fitness``, ``rmse``: its
     :func:`_score`) after :func:`_polish` with ``plane_stage_radius_m`` > 0, when the polish
-    keeps the object on the ground and fits scan k at least as well; else ``T``. Only the
-    motions kept as an object's own are polished (on real KITTI most objects are static)."""
+    keeps the object on the ground and :func:`_keeps_polish` accepts its fit (a few points
+    more or less within ``score_plane_m`` is noise, and point-to-point ICP leaves a slide
+    short while fitting as many points); else
+    ``T``. Only the motions kept as an object's own are polished (on real KITTI most
+    objects are static)."""
     if c.plane_stage_radius_m <= 0 or len(q) < c.plane_stage_min_points:
         return T
     polished = _polish(q, _cloud(q), box, T, c)
@@ -217,7 +220,14 @@ def _polished(q: np.ndarray, box: np.ndarray, T: np.ndarray, fitness: float, rms
     if _lifted(polished[:3, :3] @ centroid + polished[:3, 3] - (T_ego[:3, :3] @ centroid + T_ego[:3, 3]), c):
         return T
     f2, r2 = _score(q, polished, surface, c)
-    return polished if (f2, -r2) >= (fitness, -rmse) else T
+    return polished if _keeps_polish((f2, r2), (fitness, rmse), len(q), c) else T
+
+
+def _keeps_polish(polished: tuple[float, float], icp: tuple[float, float], n: int, c: ObjectRefinementConfig) -> bool:
+    """Whether a polish with (fitness, inlier RMSE) ``polished`` replaces the ICP result
+    with ``icp`` (both measured on ``n`` points): its RMSE is no larger and its fitness
+    lower by at most :func:`_fitness_margin`."""
+    return polished[0] >= icp[0] - _fitness_margin(icp[0], n, c) and polished[1] <= icp[1]
 
 
 def _lifted(departure: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
