@@ -8,7 +8,7 @@ import numpy as np
 from flowslam import geometry
 from flowslam.config import ObjectRefinementConfig
 from flowslam.sceneflow.refinement.clusters import LocalGround
-from flowslam.sceneflow.refinement.objects import _ego_explains, _keeps_polish, _pick, refine_objects
+from flowslam.sceneflow.refinement.objects import _ego_explains, refine_objects
 
 DT = 0.1
 HEIGHT = 1.73  # sensor above the flat ground (m)
@@ -268,42 +268,3 @@ def test_a_parked_car_hidden_by_a_passing_car_of_its_cluster_stays_static():
     assert visible_only.dynamic[label == 2].mean() > 0.8  # the passing car still moves
     assert np.array_equal(visible_only.dynamic[label == 2], all_landings.dynamic[label == 2])
 
-
-def _shifted(dx: float) -> np.ndarray:
-    """A motion that moves points by ``dx`` m along x."""
-    T = np.eye(4)
-    T[0, 3] = dx
-    return T
-
-
-def test_an_icp_start_that_slides_the_object_further_must_fit_clearly_better():
-    """Object ICP results (T, fitness, RMSE, start), the first from the network's
-    displacement: with 1,000 points the margin is max(0.03, 2 sqrt(0.99 x 0.01 / 1000))
-    = 0.03 of fitness. A start that slides the object 15 cm further with 0.004 more
-    fitness (fresh simulated `rush-hour` 234: a car beside the ego) does not replace the
-    first; one with 0.10 more than a first of 0.85 does; one that lands the object within 3 cm of the first is
-    the same solution and keeps the plain (fitness, -RMSE) choice."""
-    c = ObjectRefinementConfig()
-    p = np.random.default_rng(0).uniform(-2.0, 2.0, (1000, 3))
-    first = (_shifted(0.80), 0.990, 0.0120, _shifted(0.80))
-    slid = (_shifted(0.95), 0.994, 0.0137, _shifted(1.20))
-    assert _pick([first, slid], p, True, c) is first
-    assert _pick([first, slid], p, False, c) is slid
-    poor = (_shifted(0.80), 0.85, 0.0200, _shifted(0.80))  # margin max(0.03, 0.023)
-    clearly = (_shifted(0.95), 0.95, 0.0137, _shifted(1.20))
-    assert _pick([poor, clearly], p, True, c) is clearly
-    same = (_shifted(0.82), 0.994, 0.0125, _shifted(1.20))
-    assert _pick([first, same], p, True, c) is same
-
-
-def test_the_point_to_plane_polish_is_kept_when_it_fits_tighter_within_the_fitness_noise():
-    """A polish (point-to-plane) of a 1,000-point car: fitness 0.973 against the
-    point-to-point ICP's 0.977 (4 points: within the margin max(0.03, 2 sqrt(0.977 x
-    0.023 / 1000)) = 0.03) and inlier RMSE 11.3 mm against 13.1 mm: kept (fresh simulated
-    `rush-hour` 234: the polish put the car 4 mm from the truth, point-to-point 5 cm
-    short). A looser fit, or one 0.05 less fit, is not."""
-    c = ObjectRefinementConfig()
-    assert _keeps_polish((0.973, 0.0113), (0.977, 0.0131), 1000, c)
-    assert not _keeps_polish((0.973, 0.0140), (0.977, 0.0131), 1000, c)
-    assert not _keeps_polish((0.927, 0.0100), (0.977, 0.0131), 1000, c)
-    assert _keeps_polish((0.99, 0.0100), (0.977, 0.0131), 1000, c)

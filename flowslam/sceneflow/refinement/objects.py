@@ -205,8 +205,9 @@ def _pick(results: list[tuple], p: np.ndarray, prefer_first: bool, c: ObjectRefi
 def _polished(q: np.ndarray, box: np.ndarray, T: np.ndarray, fitness: float, rmse: float, surface: ScanSurface,
               T_ego: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
     """A moving object's motion ``T`` (of its ICP points ``q``; ``fitness``, ``rmse``: its
-    :func:`_score`) after :func:`_polish` with ``plane_stage_radius_m`` > 0, when the polish
-    keeps the object on the ground and :func:`_keeps_polish` accepts its fit (a few points
+    :func:`_score`) after :func:`_polish` with ``plane_stage_radius_m`` > 0 (made
+    :func:`_planar` with ``planar_motion``), when the polish keeps the object on the
+    ground and :func:`_keeps_polish` accepts its fit (a few points
     more or less within ``score_plane_m`` is noise, and point-to-point ICP leaves a slide
     short while fitting as many points); else
     ``T``. Only the motions kept as an object's own are polished (on real KITTI most
@@ -216,6 +217,8 @@ def _polished(q: np.ndarray, box: np.ndarray, T: np.ndarray, fitness: float, rms
     polished = _polish(q, _cloud(q), box, T, c)
     if polished is None:
         return T
+    if c.planar_motion:
+        polished = _planar(polished, q, T_ego)
     centroid = q.mean(axis=0)
     if _lifted(polished[:3, :3] @ centroid + polished[:3, 3] - (T_ego[:3, :3] @ centroid + T_ego[:3, 3]), c):
         return T
@@ -228,6 +231,20 @@ def _keeps_polish(polished: tuple[float, float], icp: tuple[float, float], n: in
     with ``icp`` (both measured on ``n`` points): its RMSE is no larger and its fitness
     lower by at most :func:`_fitness_margin`."""
     return polished[0] >= icp[0] - _fitness_margin(icp[0], n, c) and polished[1] <= icp[1]
+
+
+def _planar(T: np.ndarray, p: np.ndarray, T_ego: np.ndarray) -> np.ndarray:
+    """The motion ``D T_ego`` nearest to ``T`` on the points ``p`` (frame k-1; least squares
+    of the landings, m) whose ``D`` (frame k) turns only about the z axis: a translation
+    and a yaw from the ego landings ``T_ego p`` to the landings ``T p``."""
+    ego, landing = transform_points(T_ego, p), transform_points(T, p)
+    e0, l0 = ego.mean(axis=0), landing.mean(axis=0)
+    e, l = ego[:, :2] - e0[:2], landing[:, :2] - l0[:2]
+    yaw = np.arctan2(np.sum(e[:, 0] * l[:, 1] - e[:, 1] * l[:, 0]), np.sum(e[:, 0] * l[:, 0] + e[:, 1] * l[:, 1]))
+    D = np.eye(4)
+    D[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    D[:3, 3] = l0 - D[:3, :3] @ e0
+    return D @ T_ego
 
 
 def _lifted(departure: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:

@@ -1,0 +1,83 @@
+"""How the objects stage chooses among an object's candidate motions: which ICP start's
+result it keeps, when the point-to-plane polish replaces it, and the planar motion it is
+projected to. Hand-computed cases."""
+
+import numpy as np
+import pytest
+
+from flowslam import geometry
+from flowslam.config import ObjectRefinementConfig
+from flowslam.sceneflow.refinement.objects import _keeps_polish, _pick, _planar
+
+
+def _shifted(dx: float) -> np.ndarray:
+    """A motion that moves points by ``dx`` m along x."""
+    T = np.eye(4)
+    T[0, 3] = dx
+    return T
+
+
+def test_an_icp_start_that_slides_the_object_further_must_fit_clearly_better():
+    """Object ICP results (T, fitness, RMSE, start), the first from the network's
+    displacement: with 1,000 points the margin is max(0.03, 2 sqrt(0.99 x 0.01 / 1000))
+    = 0.03 of fitness. A start that slides the object 15 cm further with 0.004 more
+    fitness (fresh simulated `rush-hour` 234: a car beside the ego) does not replace the
+    first; one with 0.10 more than a first of 0.85 does; one that lands the object within 3 cm of the first is
+    the same solution and keeps the plain (fitness, -RMSE) choice."""
+    c = ObjectRefinementConfig()
+    p = np.random.default_rng(0).uniform(-2.0, 2.0, (1000, 3))
+    first = (_shifted(0.80), 0.990, 0.0120, _shifted(0.80))
+    slid = (_shifted(0.95), 0.994, 0.0137, _shifted(1.20))
+    assert _pick([first, slid], p, True, c) is first
+    assert _pick([first, slid], p, False, c) is slid
+    poor = (_shifted(0.80), 0.85, 0.0200, _shifted(0.80))  # margin max(0.03, 0.023)
+    clearly = (_shifted(0.95), 0.95, 0.0137, _shifted(1.20))
+    assert _pick([poor, clearly], p, True, c) is clearly
+    same = (_shifted(0.82), 0.994, 0.0125, _shifted(1.20))
+    assert _pick([first, same], p, True, c) is same
+
+
+def test_the_point_to_plane_polish_is_kept_when_it_fits_tighter_within_the_fitness_noise():
+    """A polish (point-to-plane) of a 1,000-point car: fitness 0.973 against the
+    point-to-point ICP's 0.977 (4 points: within the margin max(0.03, 2 sqrt(0.977 x
+    0.023 / 1000)) = 0.03) and inlier RMSE 11.3 mm against 13.1 mm: kept (fresh simulated
+    `rush-hour` 234: the polish put the car 4 mm from the truth, point-to-point 5 cm
+    short). A looser fit, or one 0.05 less fit, is not."""
+    c = ObjectRefinementConfig()
+    assert _keeps_polish((0.973, 0.0113), (0.977, 0.0131), 1000, c)
+    assert not _keeps_polish((0.973, 0.0140), (0.977, 0.0131), 1000, c)
+    assert not _keeps_polish((0.927, 0.0100), (0.977, 0.0131), 1000, c)
+    assert _keeps_polish((0.99, 0.0100), (0.977, 0.0131), 1000, c)
+
+
+def test_the_planar_motion_keeps_yaw_and_translation_and_drops_a_tilt():
+    """A car-sized cloud; ego motion 1 m forward with a 0.5 deg pitch (the sensor on a
+    bump). An object motion that drives the car 0.9 m along y and turns it 3 deg about z
+    relative to its ego landing comes back unchanged; the same motion with a 2 deg roll
+    about the car's own centre comes back without the roll, with the same yaw (0.05 deg)
+    and landings 1 cm from the planar motion's on average, within the roll's own
+    displacement (<= 2 deg x 1.3 m) of the rolled ones."""
+    rng = np.random.default_rng(1)
+    p = rng.uniform([10.0, -1.0, -1.5], [14.5, 1.0, 0.0], (400, 3))
+    T_ego = geometry.from_euler("y", np.radians(0.5), t=[-1.0, 0.0, 0.0])
+    ego = geometry.transform_points(T_ego, p)
+    centre = ego.mean(axis=0)
+
+    def about_centre(R: np.ndarray, t) -> np.ndarray:
+        D = np.eye(4)
+        D[:3, :3] = R
+        D[:3, 3] = centre - R @ centre + np.asarray(t)
+        return D
+
+    yaw = geometry.from_euler("z", np.radians(3.0))[:3, :3]
+    planar = about_centre(yaw, [0.0, 0.9, 0.0]) @ T_ego
+    assert np.allclose(_planar(planar, p, T_ego), planar, atol=1e-9)
+    roll = geometry.from_euler("x", np.radians(2.0))[:3, :3]
+    tilted = about_centre(yaw @ roll, [0.0, 0.9, 0.0]) @ T_ego
+    projected = _planar(tilted, p, T_ego)
+    D = projected @ geometry.inv(T_ego)
+    assert np.allclose(D[2, :3], [0.0, 0.0, 1.0], atol=1e-12)  # no roll or pitch left
+    assert np.degrees(np.arctan2(D[1, 0], D[0, 0])) == pytest.approx(3.0, abs=0.05)
+    assert np.abs(geometry.transform_points(projected, p) - geometry.transform_points(planar, p)).mean(axis=0).max() < 0.01
+    apart = np.linalg.norm(geometry.transform_points(projected, p) - geometry.transform_points(tilted, p), axis=1)
+    assert apart.max() <= np.radians(2.0) * 1.3
