@@ -7,7 +7,7 @@ import pytest
 
 from flowslam import geometry
 from flowslam.config import ObjectRefinementConfig
-from flowslam.sceneflow.refinement.objects import _keeps_polish, _pick, _planar
+from flowslam.sceneflow.refinement.objects import _keeps_polish, _on_own_surface, _pick, _planar
 
 
 def _shifted(dx: float) -> np.ndarray:
@@ -81,3 +81,17 @@ def test_the_planar_motion_keeps_yaw_and_translation_and_drops_a_tilt():
     assert np.abs(geometry.transform_points(projected, p) - geometry.transform_points(planar, p)).mean(axis=0).max() < 0.01
     apart = np.linalg.norm(geometry.transform_points(projected, p) - geometry.transform_points(tilted, p), axis=1)
     assert apart.max() <= np.radians(2.0) * 1.3
+
+
+def test_an_ego_landing_on_the_objects_own_new_surface_is_not_a_static_explanation():
+    """Four points of an object: two moved points (their landings on scan k), a third
+    whose ego landing is 0.2 m from the first's landing (on the object itself), a fourth
+    whose ego landing is 1 m away. Within 0.3 m only the third is on the object's own
+    surface; the fourth, and the third when it is not solid (on the ground), are not."""
+    landing = np.array([[10.0, 2.0, 0.5], [11.0, 2.0, 0.5], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    ego = np.array([[9.0, 2.0, 0.5], [10.0, 2.0, 0.5], [10.2, 2.0, 0.5], [12.0, 2.0, 0.5]])
+    kept = np.array([True, True, False, False])
+    solid = np.ones(4, dtype=bool)
+    assert _on_own_surface(ego, landing, kept, solid, 0.3).tolist() == [False, False, True, False]
+    solid[2] = False
+    assert not _on_own_surface(ego, landing, kept, solid, 0.3).any()

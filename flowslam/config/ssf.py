@@ -237,6 +237,12 @@ class ObjectRefinementConfig(StrictModel):
     `rush-hour` gained a little more but the real AV2 pair lost (3-way EPE 0.082 -> 0.087,
     Dynamic IoU 0.611 -> 0.601): a projection without a new fit can leave a poorly spread
     mover subset off its surface (docs/sceneflow_evaluation.md)."""
+    own_surface_m: float = Field(0.3, ge=0)
+    """A point of a moving object (clear of the ground) whose ego landing lies within this
+    (m) of the object's own landings keeps the object's motion even when its ego landing
+    is nearer to scan k's surface: a vehicle that slid along itself puts the ego landings
+    of its rear onto its own side (simulated `rush-hour` 234: 500-1,000 points of a car
+    beside the ego per pair, 0.5-0.8 m of error each). 0: off."""
     plane_stage_min_points: int = Field(300, ge=0)
     """... for motions registered on at least this many points (the normals of sparser
     objects are too rough)."""

@@ -491,7 +491,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
         clusters, road = [idx for idx, flat in zip(clusters, on_road) if not flat], int(sum(on_road))
     grown = []  # (object, its motion, its dynamic points) to grow
     motion_of = np.full(len(source), -1, dtype=np.int64)  # index of the object motion a point took
-    scene = (source, flow, movers, seen, T_ego, interval, surface, c, range_image, guesses)
+    scene = (source, flow, movers, seen, T_ego, interval, surface, c, range_image, guesses, above_ground)
     for idx, record in _registered(clusters, *scene):
         own = instance[idx] = len(objects)
         motion = record.pop("motion", None)
@@ -594,9 +594,9 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
 
 def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray, movers: np.ndarray,
                 seen: np.ndarray, T_ego: np.ndarray, interval: float, surface: ScanSurface,
-                c: ObjectRefinementConfig, range_image=None, guesses=None):
+                c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None):
     """Yields each cluster (index array into ``source``) with its :func:`_refine_object`
-    record. A cluster wider than ``split_extent_m`` is also registered as its
+    record (``solid``: (N,) points clear of the ground, or None). A cluster wider than ``split_extent_m`` is also registered as its
     :func:`_components`, and those replace it when their registrations explain at least
     ``split_gain`` of its points more than its own (:func:`_explained`): in a crowd or a
     queue one cluster holds several movers, and one rigid motion cannot register them
@@ -605,7 +605,7 @@ def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray
     def refine(group):
         for idx, static_score in zip(group, _static_scores(source, group, T_ego, surface, c)):
             yield idx, _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
-                                      static_score, c, range_image, guesses)
+                                      static_score, c, range_image, guesses, None if solid is None else solid[idx])
 
     for idx, record in refine(clusters):
         parts = _components(source, idx, c)
@@ -675,7 +675,7 @@ def _target_box(surface: ScanSurface, guess: np.ndarray, ego: np.ndarray, reach:
 
 def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.ndarray, T_ego: np.ndarray,
                    interval: float, surface: ScanSurface, static_score: tuple[float, float],
-                   c: ObjectRefinementConfig, range_image=None, guesses=None) -> dict:
+                   c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None) -> dict:
     """Register one object (points ``p``, frame k-1; their flow; its geometric movers ``sub``
     and seen-through points; its ``static_score``, :func:`_score` under ``T_ego``) to scan k,
     ``interval`` (s) after. Returns its record; an accepted one also holds ``result``:
@@ -727,7 +727,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     if record["accepted"]:
         if motions:
             record["motion"] = motions[0]
-        landing, which = _choose_landing(p, ego, motions, surface, c)
+        landing, which = _choose_landing(p, ego, motions, surface, c, solid)
         departure = np.linalg.norm(landing - ego, axis=1)
         moving = departure > c.dynamic_speed_mps * interval
         record["speed_mps"] = 0.0  # a moving object's: :func:`_split_instances`, from its final flow
@@ -878,8 +878,22 @@ def _joined_components(p: np.ndarray, c: ObjectRefinementConfig) -> tuple[np.nda
     return np.where(np.isin(labels, big), labels, big[0]), big
 
 
+def _on_own_surface(ego: np.ndarray, landing: np.ndarray, kept: np.ndarray, solid: np.ndarray,
+                    radius: float) -> np.ndarray:
+    """(M,) bool: which ``solid`` points have their ego landing ``ego`` (M,3, frame k) within
+    ``radius`` (m) of the landing of a point that keeps the object's motion (``kept``,
+    on scan k's surface there): the ego landing is on the object itself, where it is now."""
+    from scipy.spatial import cKDTree
+
+    out = np.zeros(len(ego), dtype=bool)
+    ask = np.flatnonzero(solid & ~kept)
+    if ask.size and kept.any():
+        out[ask] = np.isfinite(cKDTree(landing[kept]).query(ego[ask], distance_upper_bound=radius)[0])
+    return out
+
+
 def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], surface: ScanSurface,
-                    c: ObjectRefinementConfig) -> tuple[np.ndarray, np.ndarray]:
+                    c: ObjectRefinementConfig, solid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(M,3) landing of each point of ``p`` (frame k) and (M,) the index of the motion it
     took (-1: the ego motion): the landing of the object motion that
     puts it nearest to scan k's surface (the first when none lands within
@@ -891,7 +905,11 @@ def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], s
     down from its ego landing by more than ``vertical_margin_m`` + ``vertical_grade`` x
     its horizontal departure is not one of its choices (an object's motion passes that
     test at its centroid, but a turn of a long or merged object can lift its far end):
-    with no motion left, the point takes its ego landing."""
+    with no motion left, the point takes its ego landing. With ``own_surface_m`` > 0 and
+    ``solid`` (M,) bool (points clear of scan k-1's local ground), a solid point whose ego
+    landing lies on the object's own new surface (:func:`_on_own_surface`) keeps its
+    motion: a vehicle that slid along itself puts its rear points' ego landings onto its
+    own side, which explains them no better than its motion."""
     if not motions:
         return ego, np.full(len(p), -1, dtype=np.int64)
     landings = np.stack([transform_points(M, p) for M in motions])
@@ -904,4 +922,7 @@ def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], s
     d_ego = surface.tree.query(ego, distance_upper_bound=c.score_distance_m)[0]
     nearest = dist[best, rows]
     take_ego = ((d_ego < nearest) & ~(nearest <= c.score_plane_m)) | lifted.all(axis=0)
+    if c.own_surface_m > 0 and solid is not None:
+        moved = ~take_ego & (nearest <= c.score_plane_m) & ~(d_ego <= c.score_plane_m)  # only the motion explains them
+        take_ego &= ~_on_own_surface(ego, landings[best, rows], moved, solid & ~lifted.all(axis=0), c.own_surface_m)
     return np.where(take_ego[:, None], ego, landings[best, rows]), np.where(take_ego, -1, best)
