@@ -15,7 +15,10 @@ points is registered to scan ``k`` by point-to-point ICP (Open3D, coarse-to-fine
 correspondence distances), starting from the ego rotation and the median network
 displacement of its points. Accepted objects (ICP fitness and RMSE within bounds)
 get the rigid flow of their own motion (polished by one point-to-plane ICP,
-``plane_stage_radius_m``) -- or of the ego motion when that explains the
+``plane_stage_radius_m``, kept when it fits as tightly, and made planar,
+``planar_motion``; of several ICP starts the first, the network's or the track's
+displacement, keeps its result unless another fits clearly better,
+``prefer_first_start``) -- or of the ego motion when that explains the
 object's points about as well (fitness within ``static_preference``, RMSE within
 ``static_rmse_ratio``; the fitness margin is at least ``static_preference_sigmas`` standard
 errors of a share of the object's points) or well enough (``static_fitness_accept``:
@@ -25,7 +28,8 @@ static otherwise. Objects holding geometric movers also start ICP from the ego l
 shifted along their axis (``hypotheses_m``), and their movers get an ICP of their own
 (a mover merged with static false positives keeps its own motion); each point then
 takes the candidate motion that puts it nearest to scan ``k``'s surface, the ego motion
-when that is strictly nearer. Points of rejected or too small objects keep the network's flow and
+when that is strictly nearer (unless its ego landing lies on the object's own new
+surface, ``own_surface_m``). Points of rejected or too small objects keep the network's flow and
 label, except that network-dynamic points whose ego-rigid landing spot lies on a
 surface of scan ``k`` become static (the static explanation fits the data).
 
@@ -206,12 +210,11 @@ def _polished(q: np.ndarray, box: np.ndarray, T: np.ndarray, fitness: float, rms
               T_ego: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
     """A moving object's motion ``T`` (of its ICP points ``q``; ``fitness``, ``rmse``: its
     :func:`_score`) after :func:`_polish` with ``plane_stage_radius_m`` > 0 (made
-    :func:`_planar` with ``planar_motion``), when the polish keeps the object on the
-    ground and :func:`_keeps_polish` accepts its fit (a few points
-    more or less within ``score_plane_m`` is noise, and point-to-point ICP leaves a slide
-    short while fitting as many points); else
-    ``T``. Only the motions kept as an object's own are polished (on real KITTI most
-    objects are static)."""
+    :func:`_planar` with ``planar_motion``), when the polish keeps the object on the ground
+    and :func:`_keeps_polish` accepts its fit (a few points more or less within
+    ``score_plane_m`` is noise, and point-to-point ICP leaves a slide short while fitting
+    as many points); else ``T``. Only the motions kept as an object's own are polished (on
+    real KITTI most objects are static)."""
     if c.plane_stage_radius_m <= 0 or len(q) < c.plane_stage_min_points:
         return T
     polished = _polish(q, _cloud(q), box, T, c)
@@ -238,12 +241,12 @@ def _planar(T: np.ndarray, p: np.ndarray, T_ego: np.ndarray) -> np.ndarray:
     of the landings, m) whose ``D`` (frame k) turns only about the z axis: a translation
     and a yaw from the ego landings ``T_ego p`` to the landings ``T p``."""
     ego, landing = transform_points(T_ego, p), transform_points(T, p)
-    e0, l0 = ego.mean(axis=0), landing.mean(axis=0)
-    e, l = ego[:, :2] - e0[:2], landing[:, :2] - l0[:2]
-    yaw = np.arctan2(np.sum(e[:, 0] * l[:, 1] - e[:, 1] * l[:, 0]), np.sum(e[:, 0] * l[:, 0] + e[:, 1] * l[:, 1]))
+    ego_mean, land_mean = ego.mean(axis=0), landing.mean(axis=0)
+    a, b = ego[:, :2] - ego_mean[:2], landing[:, :2] - land_mean[:2]  # centred BEV positions
+    yaw = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
     D = np.eye(4)
     D[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
-    D[:3, 3] = l0 - D[:3, :3] @ e0
+    D[:3, 3] = land_mean - D[:3, :3] @ ego_mean
     return D @ T_ego
 
 
@@ -596,8 +599,8 @@ def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray
                 seen: np.ndarray, T_ego: np.ndarray, interval: float, surface: ScanSurface,
                 c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None):
     """Yields each cluster (index array into ``source``) with its :func:`_refine_object`
-    record (``solid``: (N,) points clear of the ground, or None). A cluster wider than ``split_extent_m`` is also registered as its
-    :func:`_components`, and those replace it when their registrations explain at least
+    record (``solid``: (N,) points clear of the ground, or None). A cluster wider than
+    ``split_extent_m`` is also registered as its :func:`_components`, and those replace it when their registrations explain at least
     ``split_gain`` of its points more than its own (:func:`_explained`): in a crowd or a
     queue one cluster holds several movers, and one rigid motion cannot register them
     all; but a car whose sparse candidate points fall into several components is better
