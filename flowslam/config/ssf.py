@@ -242,7 +242,8 @@ class ObjectRefinementConfig(StrictModel):
     (m) of the object's own landings keeps the object's motion even when its ego landing
     is nearer to scan k's surface: a vehicle that slid along itself puts the ego landings
     of its rear onto its own side (simulated `rush-hour` 234: 500-1,000 points of a car
-    beside the ego per pair, 0.5-0.8 m of error each). 0: off."""
+    beside the ego per pair, 0.5-0.8 m of error each). Needs scan k-1's local ground
+    (``refine_objects(above_ground=...)``, which the ``ssf`` frontend always passes). 0: off."""
     plane_stage_min_points: int = Field(300, ge=0)
     """... for motions registered on at least this many points (the normals of sparser
     objects are too rough)."""
