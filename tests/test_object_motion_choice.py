@@ -22,8 +22,8 @@ def test_an_icp_start_that_slides_the_object_further_must_fit_clearly_better():
     displacement: with 1,000 points the margin is max(0.03, 2 sqrt(0.99 x 0.01 / 1000))
     = 0.03 of fitness. A start that slides the object 15 cm further with 0.004 more
     fitness (fresh simulated `rush-hour` 234: a car beside the ego) does not replace the
-    first; one with 0.10 more than a first of 0.85 does; one that lands the object within 3 cm of the first is
-    the same solution and keeps the plain (fitness, -RMSE) choice."""
+    first; one with 0.10 more than a first of 0.85 does; one that lands the object within
+    3 cm of the first is the same solution and keeps the plain (fitness, -RMSE) choice."""
     c = ObjectRefinementConfig()
     p = np.random.default_rng(0).uniform(-2.0, 2.0, (1000, 3))
     first = (_shifted(0.80), 0.990, 0.0120, _shifted(0.80))

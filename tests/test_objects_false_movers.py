@@ -267,4 +267,3 @@ def test_a_parked_car_hidden_by_a_passing_car_of_its_cluster_stays_static():
     assert not visible_only.dynamic[label == 1].any()
     assert visible_only.dynamic[label == 2].mean() > 0.8  # the passing car still moves
     assert np.array_equal(visible_only.dynamic[label == 2], all_landings.dynamic[label == 2])
-

@@ -179,10 +179,9 @@ def _best_icp(p: np.ndarray, box: np.ndarray, tgt, surface: ScanSurface, starts:
     results = []
     src = _cloud(p)
     centroid = p.mean(axis=0)
-    ego_centroid = T_ego[:3, :3] @ centroid + T_ego[:3, 3]
     for T_start in starts:
         T = _register(p, src, box, tgt, T_start, c)
-        if _lifted(T[:3, :3] @ centroid + T[:3, 3] - ego_centroid, c):
+        if _lifts_centroid(T, centroid, T_ego, c):
             continue
         results.append((T, *_score(p, T, surface, c), T_start))
     if not results:
@@ -222,8 +221,7 @@ def _polished(q: np.ndarray, box: np.ndarray, T: np.ndarray, fitness: float, rms
         return T
     if c.planar_motion:
         polished = _planar(polished, q, T_ego)
-    centroid = q.mean(axis=0)
-    if _lifted(polished[:3, :3] @ centroid + polished[:3, 3] - (T_ego[:3, :3] @ centroid + T_ego[:3, 3]), c):
+    if _lifts_centroid(polished, q.mean(axis=0), T_ego, c):
         return T
     f2, r2 = _score(q, polished, surface, c)
     return polished if _keeps_polish((f2, r2), (fitness, rmse), len(q), c) else T
@@ -248,6 +246,12 @@ def _planar(T: np.ndarray, p: np.ndarray, T_ego: np.ndarray) -> np.ndarray:
     D[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
     D[:3, 3] = land_mean - D[:3, :3] @ ego_mean
     return D @ T_ego
+
+
+def _lifts_centroid(T: np.ndarray, centroid: np.ndarray, T_ego: np.ndarray, c: ObjectRefinementConfig) -> bool:
+    """Whether the motion ``T`` moves an object's ``centroid`` (frame k-1) up or down from its
+    ``T_ego`` landing (:func:`_lifted`)."""
+    return bool(_lifted(T[:3, :3] @ centroid + T[:3, 3] - (T_ego[:3, :3] @ centroid + T_ego[:3, 3]), c))
 
 
 def _lifted(departure: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
@@ -919,13 +923,15 @@ def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], s
     dist = surface.tree.query(landings.reshape(-1, 3), distance_upper_bound=c.score_distance_m)[0]
     dist = dist.reshape(len(motions), len(p))
     lifted = _lifted(landings - ego, c)
+    no_motion = lifted.all(axis=0)  # every motion lifts the point: only its ego landing is left
     dist[lifted] = np.inf  # a motion that lifts or sinks the point (a turn of a long or merged object): not its own
     best = np.argmin(dist, axis=0)
     rows = np.arange(len(p))
     d_ego = surface.tree.query(ego, distance_upper_bound=c.score_distance_m)[0]
     nearest = dist[best, rows]
-    take_ego = ((d_ego < nearest) & ~(nearest <= c.score_plane_m)) | lifted.all(axis=0)
+    take_ego = ((d_ego < nearest) & ~(nearest <= c.score_plane_m)) | no_motion
+    own = landings[best, rows]
     if c.own_surface_m > 0 and solid is not None:
         moved = ~take_ego & (nearest <= c.score_plane_m) & ~(d_ego <= c.score_plane_m)  # only the motion explains them
-        take_ego &= ~_on_own_surface(ego, landings[best, rows], moved, solid & ~lifted.all(axis=0), c.own_surface_m)
-    return np.where(take_ego[:, None], ego, landings[best, rows]), np.where(take_ego, -1, best)
+        take_ego &= ~_on_own_surface(ego, own, moved, solid & ~no_motion, c.own_surface_m)
+    return np.where(take_ego[:, None], ego, own), np.where(take_ego, -1, best)
