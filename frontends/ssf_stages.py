@@ -353,7 +353,7 @@ def restore_motion_models(saved: list) -> None:
 
 class ObjectsStage:
     """Moving objects against scan k: candidates (network dynamic, tracked movers, geometric
-    movers, slow movers against an older scan of the window) -> per-object ICP -> flow,
+    movers, slow movers against an older scan) -> per-object ICP -> flow,
     dynamic labels and instances. Needs an accepted
     static refinement (the ego motion it verifies objects against); keeps the network's
     output otherwise.
@@ -368,10 +368,10 @@ class ObjectsStage:
 
         self.options = config.objects
         self.movers = MoverPrior(self.options.track_radius_m)
-        self._images: dict[int, object] = {}
-        """Range images of the last scans by index: the older scans' free space for
-        :func:`~flowslam.sceneflow.refinement.visibility.slow_movers` (each scan's image is
-        built once, when it is scan k)."""
+        self._images: dict[int, tuple] = {}
+        """(range image, own ``T_world_sensor``) of the last scans by frame index: the older
+        scans' free space for :func:`~flowslam.sceneflow.refinement.visibility.slow_movers`
+        (each scan's image is built once, when it is scan k)."""
 
     def run(self, state: PairState) -> None:
         from flowslam.sceneflow.refinement.clusters import LocalGround, ScanSurface
@@ -409,22 +409,39 @@ class ObjectsStage:
 
     def _slow_movers(self, state: PairState, image, ground) -> np.ndarray:
         """:func:`~flowslam.sceneflow.refinement.visibility.slow_movers` of scan k-1 against the
-        scan ``baseline_scans`` older in the network's window (the oldest it holds), placed
-        with the frontend's own poses; ``image``: scan k's range image, kept for later pairs."""
-        from flowslam.sceneflow.refinement.visibility import RangeImage, slow_movers
+        scan ``baseline_scans`` before it (:meth:`_older_scan`), placed with the frontend's
+        own poses; ``image``: scan k's range image, kept with scan k's own pose for later pairs."""
+        from flowslam.sceneflow.refinement.visibility import slow_movers
 
-        evidence, history = self.options.motion_evidence, state.history
-        self._images = {i: im for i, im in self._images.items() if i >= state.frame.index - evidence.baseline_scans - 1}
-        self._images[state.frame.index] = image
-        back = min(evidence.baseline_scans, len(history) - 1)  # history ends with scan k-1
-        if back < 1:
+        evidence = self.options.motion_evidence
+        self._images = {i: v for i, v in self._images.items() if i >= state.frame.index - evidence.baseline_scans - 1}
+        self._images[state.frame.index] = (image, state.history_poses[-1] @ state.estimate.T_prev_curr)
+        old = self._older_scan(state, evidence.baseline_scans)
+        if old is None:
             return np.zeros(len(state.prev.points), dtype=bool)
-        old = history[-1 - back]
-        old_image = self._images.get(old.index)
-        if old_image is None:  # a scan this stage did not see as scan k (a run's first scans, a retry)
-            old_image = RangeImage(old.points, evidence)
-        T_old_prev = geometry.inv(state.history_poses[-1 - back]) @ state.history_poses[-1]
+        old_image, T_world_old = old
+        T_old_prev = geometry.inv(T_world_old) @ state.history_poses[-1]
         return slow_movers(state.prev.points, T_old_prev, old_image, evidence, ground)
+
+    def _older_scan(self, state: PairState, back: int):
+        """(range image, own ``T_world_sensor``) of the scan ``back`` scans before scan k-1: from
+        the network's window when it holds that scan (its image as kept when it was scan k,
+        else built), else as kept when it was scan k (by frame index), else the window's
+        oldest scan; None without an older scan (``back`` 0, or the run's first pair)."""
+        from flowslam.sceneflow.refinement.visibility import RangeImage
+
+        history = state.history  # ends with scan k-1
+        kept = self._images.get(state.prev.index - back) if back > len(history) - 1 else None
+        if kept is not None:
+            return kept
+        back = min(back, len(history) - 1)
+        if back < 1:
+            return None
+        old = history[-1 - back]
+        image = self._images.get(old.index, (None,))[0]
+        if image is None:  # a scan this stage did not see as scan k (a run's first scans, a retry)
+            image = RangeImage(old.points, self.options.motion_evidence)
+        return image, state.history_poses[-1 - back]
 
 
 class RigidStaticFlowStage:

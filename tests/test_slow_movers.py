@@ -11,6 +11,7 @@ import numpy as np
 from flowslam import geometry
 from flowslam.config import SsfConfig
 from flowslam.config.ssf import MotionEvidenceConfig
+from flowslam.flow_odometry import FlowPoseEstimate
 from flowslam.frame import Frame
 from flowslam.sceneflow.refinement.visibility import RangeImage, slow_movers
 
@@ -81,11 +82,23 @@ def test_a_walker_has_left_the_free_space_of_an_older_scan():
     assert not back[_walker_mask(_world(y_old), y_old)].all()
 
 
+def _pair(frames: list, poses: list, k: int, window: int):
+    """The objects stage's state of the pair (k-1, k) with a window of ``window`` scans
+    ending with k-1, scan k measured at its true pose."""
+    from frontends.ssf_stages import PairState
+
+    state = PairState(frames[k - 1], frames[k], frames[k - window:k], poses[k - window:k], T_world_guess=poses[k])
+    T_prev_curr = geometry.inv(poses[k - 1]) @ poses[k]
+    state.estimate = FlowPoseEstimate(T_prev_curr, np.eye(6), geometry.inv(T_prev_curr),
+                                      np.ones(len(frames[k - 1].points), dtype=bool), False, None)
+    return state
+
+
 def test_the_objects_stage_tests_the_scan_baseline_scans_older_in_its_window():
     """``ObjectsStage`` takes the older scan from the network's window and places it with the
     frontend's own poses; ``baseline_scans: 0`` turns the test off, and a window shorter than
     the baseline uses its oldest scan."""
-    from frontends.ssf_stages import ObjectsStage, PairState
+    from frontends.ssf_stages import ObjectsStage
 
     ys = [1.45, 1.3, 1.15, 1.0, 0.85]  # the walker at scans k-4 .. k
     frames = [Frame(index=i, timestamp=0.1 * i, points=_scan(_world(y), _pose(i))) for i, y in enumerate(ys)]
@@ -96,15 +109,43 @@ def test_the_objects_stage_tests_the_scan_baseline_scans_older_in_its_window():
         config = SsfConfig()
         config.objects.motion_evidence.baseline_scans = baseline
         stage = ObjectsStage(config)
-        history = frames[4 - window:4]
-        state = PairState(frames[3], frames[4], history, poses[4 - window:4], T_world_guess=poses[4])
         image = RangeImage(frames[4].points, config.objects.motion_evidence)
-        return stage._slow_movers(state, image, None)
+        return stage._slow_movers(_pair(frames, poses, 4, window), image, None)
 
     assert flagged(3, 4)[walker].mean() > 0.5  # against scan k-4: 45 cm of free space
     assert not flagged(0, 4).any()
     assert flagged(3, 2)[walker].any()  # window of two: scan k-2 (15 cm; the window still sees through part)
     assert not flagged(3, 1).any()  # no scan older than k-1 in the window
+
+
+def test_the_objects_stage_reaches_beyond_the_window_with_the_images_and_poses_it_kept():
+    """A walker at 5 cm per scan, a window of four scans, ``baseline_scans: 8``: the stage
+    has seen scans 1-10 as scan k and tests scan 9 against scan 1 (its range image and own
+    pose as kept then, 40 cm of free space), exactly as :func:`slow_movers` against scan 1
+    does; against the window's oldest scan (k-4, 15 cm) fewer walker points are flagged."""
+    from frontends.ssf_stages import ObjectsStage
+
+    ys = [1.6 - 0.05 * i for i in range(11)]
+    frames = [Frame(index=i, timestamp=0.1 * i, points=_scan(_world(y), _pose(i))) for i, y in enumerate(ys)]
+    poses = [_pose(i) for i in range(11)]
+    walker = _walker_mask(_world(ys[9]), ys[9])
+
+    def flagged(baseline: int) -> np.ndarray:
+        config = SsfConfig()
+        config.objects.motion_evidence.baseline_scans = baseline
+        stage = ObjectsStage(config)
+        for k in range(1, 11):
+            image = RangeImage(frames[k].points, config.objects.motion_evidence)
+            out = stage._slow_movers(_pair(frames, poses, k, min(k, 4)), image, None)
+        assert len(stage._images) <= baseline + 2  # only what the baseline needs is kept
+        return out
+
+    c = SsfConfig().objects.motion_evidence
+    direct = slow_movers(frames[9].points, geometry.inv(poses[1]) @ poses[9], RangeImage(frames[1].points, c), c)
+    far = flagged(8)
+    assert np.array_equal(far, direct)
+    assert far[walker].mean() > 0.5 and not far[~walker].any()
+    assert flagged(3)[walker].mean() < far[walker].mean()
 
 
 def test_the_own_bin_test_ignores_a_return_in_front_in_the_neighbouring_bin():

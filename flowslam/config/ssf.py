@@ -129,12 +129,14 @@ class MotionEvidenceConfig(StrictModel):
     """... and clusters with fewer seen-through points."""
     max_extent_m: float = Field(12.0, gt=0)
     """... and clusters whose BEV extent (diagonal) exceeds this (walls, not vehicles)."""
-    baseline_scans: int = Field(3, ge=0)
+    baseline_scans: int = Field(7, ge=0)
     """Slow movers: the points of scan k-1 are also tested against the scan this many scans
-    older (from the network's window, placed with the frontend's own poses): a cluster of
-    at least ``min_points`` points where that scan sees through is a candidate object.
-    Walkers and slow cars (5-10 cm per scan) never leave scan k's surface in one step,
-    but do in a few. 0: off; more than the window holds: the oldest scan in it."""
+    older (placed with the frontend's own poses): a cluster of at least ``min_points``
+    points where that scan sees through is a candidate object. Walkers and slow cars
+    (5-10 cm per scan) never leave scan k's surface in one step, but do in several. The
+    objects stage keeps each scan's range image and own pose from when it was scan k, so
+    the baseline may reach beyond the network's window; until a run has seen that many
+    scans, the window's oldest scan serves. 0: off."""
     baseline_own_bin: bool = False
     """Opt-in: that test looks at each point's own range-image bin, with the margins below,
     instead of the seen-through test's window and margins. Measured (stop 28): more slow
