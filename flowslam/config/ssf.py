@@ -257,6 +257,14 @@ class ObjectRefinementConfig(StrictModel):
     (the network often flags only part of a vehicle, and a vehicle sliding along itself
     leaves the surface only at its ends). Real AV2 pair: 3-way EPE 0.160 -> 0.074, Dynamic
     IoU 0.27 -> 0.58 (docs/sceneflow_evaluation.md). 0: never."""
+    embedded_share: float = Field(0.5, ge=0, le=1.01)
+    """A moving object at least this share of whose moving points have another point clear of
+    the ground within ``EMBED_RADIUS_M`` (``objects``) lies inside a larger body; when the ego
+    motion explains that body's other points (within ``EMBED_BODY_M`` of the object) better
+    than the object's motion by ``static_preference``, the object is a part of a static body
+    that its ICP slid (real KITTI: a parked car 2.7 m beside the ego, whose flagged lower and
+    inner points slid 0.2 m along it while the rest of it fits the ego motion) and stays
+    static. 1.01: never."""
     grow_min_seen_through: int = Field(5, ge=0)
     """An object grows only into components holding at least this many seen-through points
     (free space in scan k where they were, ``motion_evidence``): an object of scan k-1

@@ -29,8 +29,11 @@ shifted along their axis (``hypotheses_m``), and their movers get an ICP of thei
 (a mover merged with static false positives keeps its own motion); each point then
 takes the candidate motion that puts it nearest to scan ``k``'s surface, the ego motion
 when that is strictly nearer (unless its ego landing lies on the object's own new
-surface, ``own_surface_m``). Points of rejected or too small objects keep the network's flow and
-label, except that network-dynamic points whose ego-rigid landing spot lies on a
+surface, ``own_surface_m``). A moving object whose points lie inside a larger body (most
+of them have other points clear of the ground within ``EMBED_RADIUS_M``) stays static
+when the ego motion explains that body better than the object's motion
+(``embedded_share``): its ICP slid a flagged part of a static body. Points of rejected or
+too small objects keep the network's flow and label, except that network-dynamic points whose ego-rigid landing spot lies on a
 surface of scan ``k`` become static (the static explanation fits the data).
 
 Scan k is indexed once per pair (:class:`~flowslam.sceneflow.refinement.clusters.ScanSurface`):
@@ -497,23 +500,32 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
             flow[idx], dynamic[idx], settled[idx] = rigid_flow(T_ego, source[idx]), False, True
         clusters, road = [idx for idx, flat in zip(clusters, on_road) if not flat], int(sum(on_road))
     grown = []  # (object, its motion, its dynamic points) to grow
+    motions = {}  # object -> its own motion
     motion_of = np.full(len(source), -1, dtype=np.int64)  # index of the object motion a point took
     scene = (source, flow, movers, seen, T_ego, interval, surface, c, range_image, guesses, above_ground)
     for idx, record in _registered(clusters, *scene):
         own = instance[idx] = len(objects)
         motion = record.pop("motion", None)
+        if motion is not None:
+            motions[own] = motion
         objects.append(record)
         if "result" in record:
             landing, moving, motion_of[idx] = record.pop("result")
             flow[idx], dynamic[idx], settled[idx] = landing - source[idx], moving, True
             if motion is not None and moving.any():
                 grown.append((own, motion, idx[moving]))
-    if grown and above_ground is not None and c.grow_max_extent_m > 0:
-        solid = np.flatnonzero(np.asarray(above_ground, bool) & near)
+    solid = None if above_ground is None else np.flatnonzero(np.asarray(above_ground, bool) & near)
+    if grown and solid is not None and c.grow_max_extent_m > 0:
         for i, extra, landing, moving in _grow(source, solid, grown, settled, seen, T_ego, surface, interval, c):
             flow[extra], dynamic[extra], settled[extra], instance[extra] = landing - source[extra], moving, True, i
             motion_of[extra] = 0
             objects[i]["grown_points"] = int(len(extra))
+    if motions and solid is not None and c.embedded_share <= 1:
+        for own, motion in motions.items():
+            mine = np.flatnonzero((instance == own) & dynamic & settled)
+            if mine.size and _embedded(source, solid, mine, motion, T_ego, surface, c):
+                flow[mine], dynamic[mine] = rigid_flow(T_ego, source[mine]), False
+                objects[own]["embedded"] = True
     still = _split_instances(source, flow, dynamic & settled, instance, motion_of, objects, T_ego, interval, surface, c,
                              range_image if c.split_visible else None, seen)
     flow[still], dynamic[still] = rigid_flow(T_ego, source[still]), False
@@ -597,6 +609,38 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
             moving = np.linalg.norm(landing[extra] - ego, axis=1) > c.dynamic_speed_mps * interval
             taken[pts] = True
             yield i, pts, np.where(moving[:, None], landing[extra], ego), moving  # static: the ego landing
+
+
+EMBED_RADIUS_M = 0.15
+"""A moving point with another point clear of the ground this close (m) lies inside a body
+(:func:`_embedded`)."""
+
+EMBED_BODY_M = 0.5
+"""The body around an embedded object: the other points clear of the ground within this
+distance (m) of its moving points."""
+
+
+def _embedded(source: np.ndarray, solid: np.ndarray, mine: np.ndarray, motion: np.ndarray, T_ego: np.ndarray,
+              surface: ScanSurface, c: ObjectRefinementConfig) -> bool:
+    """Whether an object's moving points ``mine`` (indices into ``source``, frame k-1) are a
+    part of a static body that its ``motion`` slid: at least ``embedded_share`` of them have
+    another point of ``solid`` (indices of the points clear of the ground) within
+    ``EMBED_RADIUS_M``, and the ego motion puts that body (the other ``solid`` points within
+    ``EMBED_BODY_M`` of them) on scan k's ``surface`` better than ``motion`` does, by
+    ``static_preference`` (:func:`_score` fitness). A walker beside a parked car touches it
+    only at its edge; a moving vehicle's unflagged points move with it."""
+    from scipy.spatial import cKDTree
+
+    p = source[mine]
+    near = solid[in_bounds(source[solid], p.min(axis=0) - EMBED_BODY_M, p.max(axis=0) + EMBED_BODY_M)]
+    others = near[~np.isin(near, mine)]
+    if others.size == 0:
+        return False
+    inside = np.isfinite(cKDTree(source[others]).query(p, distance_upper_bound=EMBED_RADIUS_M)[0]).mean()
+    if inside < c.embedded_share:
+        return False
+    body = source[others[np.isfinite(cKDTree(p).query(source[others], distance_upper_bound=EMBED_BODY_M)[0])]]
+    return _score(body, T_ego, surface, c)[0] >= _score(body, motion, surface, c)[0] + c.static_preference
 
 
 def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray, movers: np.ndarray,
