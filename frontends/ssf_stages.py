@@ -421,7 +421,8 @@ class ObjectsStage:
             return np.zeros(len(state.prev.points), dtype=bool)
         old_image, T_world_old = old
         T_old_prev = geometry.inv(T_world_old) @ state.history_poses[-1]
-        return slow_movers(state.prev.points, T_old_prev, old_image, evidence, ground)
+        prev_image = self._images.get(state.prev.index, (None,))[0]
+        return slow_movers(state.prev.points, T_old_prev, old_image, evidence, ground, prev_image)
 
     def _older_scan(self, state: PairState, back: int):
         """(range image, own ``T_world_sensor``) of the scan ``back`` scans before scan k-1: from

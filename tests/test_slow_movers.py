@@ -141,11 +141,47 @@ def test_the_objects_stage_reaches_beyond_the_window_with_the_images_and_poses_i
         return out
 
     c = SsfConfig().objects.motion_evidence
-    direct = slow_movers(frames[9].points, geometry.inv(poses[1]) @ poses[9], RangeImage(frames[1].points, c), c)
+    direct = slow_movers(frames[9].points, geometry.inv(poses[1]) @ poses[9], RangeImage(frames[1].points, c), c,
+                         source_image=RangeImage(frames[9].points, c))
     far = flagged(8)
     assert np.array_equal(far, direct)
     assert far[walker].mean() > 0.5 and not far[~walker].any()
     assert flagged(3)[walker].mean() < far[walker].mean()
+
+
+def _behind_box(points: np.ndarray, lo, hi) -> np.ndarray:
+    """(N,) bool: the segment from the sensor (origin) to each point passes through the box
+    ``lo``-``hi`` before reaching it (a ray cast: such a point is not in the scan)."""
+    d = np.where(np.abs(points) < 1e-12, 1e-12, points)
+    t0, t1 = (np.asarray(lo) - 0.0) / d, (np.asarray(hi) - 0.0) / d
+    enter = np.minimum(t0, t1).max(axis=1)
+    leave = np.maximum(t0, t1).min(axis=1)
+    return (enter <= leave) & (enter > 0) & (enter < 1.0 - 1e-6)
+
+
+def test_a_walker_walking_away_leaves_the_place_in_front_of_where_it_is_now():
+    """The walker walks straight away from a standing sensor, 0.7 m in seven scans: the older
+    scan saw its old body in front of where it is now (no free space there), and scan k-1
+    sees through that old body's place. ``baseline_vacated`` flags it; the wall and ground
+    behind it (now seen, then hidden), the pillar and the rest stay unflagged, and nothing
+    is flagged without the option or without scan k-1's range image."""
+    def scan(x: float) -> tuple[np.ndarray, np.ndarray]:
+        """The scene with the walker at (x, 0), ray-cast from the origin; its walker mask."""
+        walker = _box((x, 0.0))
+        rest = np.concatenate([_grid((14.0, -4.0, -HEIGHT), (14.0, 4.0, 1.0)), _box((10.0, -2.0)),
+                               _grid((-4.0, -5.0, -HEIGHT), (16.0, 5.0, -HEIGHT), step=0.25)])
+        rest = rest[~_behind_box(rest, walker.min(axis=0), walker.max(axis=0))]
+        return np.concatenate([rest, walker]), np.arange(len(rest) + len(walker)) >= len(rest)
+
+    old, _ = scan(9.3)
+    prev, walker = scan(10.0)
+    c = MotionEvidenceConfig(baseline_vacated=True)
+    flagged = slow_movers(prev, np.eye(4), RangeImage(old, c), c, source_image=RangeImage(prev, c))
+    assert flagged[walker].mean() > 0.5
+    assert not flagged[~walker].any()
+    assert not slow_movers(prev, np.eye(4), RangeImage(old, c), c).any()  # no scan k-1 image
+    plain = MotionEvidenceConfig(baseline_vacated=False)
+    assert not slow_movers(prev, np.eye(4), RangeImage(old, plain), plain, source_image=RangeImage(prev, plain)).any()
 
 
 def test_the_own_bin_test_ignores_a_return_in_front_in_the_neighbouring_bin():

@@ -15,7 +15,9 @@ connected components and keeps those that hold enough seen-through points: movin
 objects found by geometry alone, which the learned segmentation may have missed.
 :func:`slow_movers` applies the free-space test against an older scan instead of scan
 ``k``: what moves a few centimetres per scan leaves no surface in one step, but an older
-scan's free space after a few.
+scan's free space after a few; and where the older scan saw something just in front of a
+point, the place scan k-1 now sees through (a walker walking away hid its new place behind
+its old body).
 
 Frames: ``source`` in sensor frame ``k-1``, ``target`` in sensor frame ``k``,
 ``T_ego`` = ``T_{k,k-1}``; metres and degrees.
@@ -145,6 +147,7 @@ def slow_movers(
     old_image: RangeImage,
     config: MotionEvidenceConfig | None = None,
     ground: LocalGround | None = None,
+    source_image: RangeImage | None = None,
 ) -> np.ndarray:
     """(N,) bool over ``source`` (scan k-1): points of BEV clusters of at least ``min_points``
     non-ground points (within ``max_range_m``, extent at most ``max_extent_m``) where an older
@@ -159,16 +162,30 @@ def slow_movers(
     test is the seen-through one (a window of bins, its margins); with ``baseline_own_bin``
     it looks at each point's own bin with the margins ``baseline_margin_m`` +
     ``baseline_relative_margin`` r instead: a walker shifts by less than a window in a few
-    scans, so more slow walkers are found, and more static objects (opt-in)."""
+    scans, so more slow walkers are found, and more static objects (opt-in).
+
+    ``source_image``: the :class:`RangeImage` of ``source`` itself. With it and
+    ``baseline_vacated``, a point is also flagged where the older scan saw something at most
+    ``baseline_vacated_max_m`` in front of it (:meth:`RangeImage.in_front`) whose place on
+    the point's ray ``source`` sees through: a walker walking away from the sensor hid its
+    own new place behind its old body, and that body has left."""
     c = config or MotionEvidenceConfig()
     near = _tested(source, c, ground)
     x = transform_points(T_old_source, source[near])
     if c.baseline_own_bin:
-        near = near[old_image.sees_beyond(x, own_bin=True, margin_m=c.baseline_margin_m,
-                                          relative_margin=c.baseline_relative_margin)]
+        free = old_image.sees_beyond(x, own_bin=True, margin_m=c.baseline_margin_m,
+                                     relative_margin=c.baseline_relative_margin)
     else:
-        near = near[old_image.sees_beyond(x)]
-    return _compact_clusters(source, near, c)
+        free = old_image.sees_beyond(x)
+    if c.baseline_vacated and source_image is not None:
+        front, where = old_image.in_front(x)
+        # only just behind what left: farther behind is what its leaving revealed
+        front &= np.linalg.norm(x - where, axis=1) <= c.baseline_vacated_max_m
+        ask = np.flatnonzero(front & ~free)
+        if ask.size:
+            T_source_old = np.linalg.inv(T_old_source)
+            free[ask] = source_image.sees_beyond(transform_points(T_source_old, where[ask]))
+    return _compact_clusters(source, near[free], c)
 
 
 def _tested(source: np.ndarray, c: MotionEvidenceConfig, ground: LocalGround | None) -> np.ndarray:
