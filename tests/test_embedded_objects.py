@@ -49,7 +49,7 @@ def test_a_flagged_part_of_a_parked_car_that_its_icp_slid_stays_static():
     c = ObjectRefinementConfig()
     surface = ScanSurface(CAR)
     solid = np.arange(len(CAR))
-    assert _embedded(CAR, solid, _subset(len(CAR)), _shift(0.2), np.eye(4), surface, c)
+    assert _embedded(CAR, solid, CAR, _subset(len(CAR)), _shift(0.2), np.eye(4), surface, c)
 
 
 def test_a_moving_car_whose_network_flagged_part_of_it_keeps_its_motion():
@@ -59,7 +59,7 @@ def test_a_moving_car_whose_network_flagged_part_of_it_keeps_its_motion():
     c = ObjectRefinementConfig()
     surface = ScanSurface(CAR + [0.8, 0.0, 0.0])
     solid = np.arange(len(CAR))
-    assert not _embedded(CAR, solid, _subset(len(CAR)), _shift(0.8), np.eye(4), surface, c)
+    assert not _embedded(CAR, solid, CAR, _subset(len(CAR)), _shift(0.8), np.eye(4), surface, c)
 
 
 def test_a_walker_beside_a_parked_car_is_not_embedded_in_it():
@@ -75,5 +75,5 @@ def test_a_walker_beside_a_parked_car_is_not_embedded_in_it():
     surface = ScanSurface(np.concatenate([CAR, walker + away[:3, 3]]))
     mine = np.arange(len(CAR), len(scan_km1))
     solid = np.arange(len(scan_km1))
-    assert not _embedded(scan_km1, solid, mine, away, np.eye(4), surface, ObjectRefinementConfig())
-    assert _embedded(scan_km1, solid, mine, away, np.eye(4), surface, ObjectRefinementConfig(embedded_share=0.0))
+    assert not _embedded(scan_km1, solid, scan_km1, mine, away, np.eye(4), surface, ObjectRefinementConfig())
+    assert _embedded(scan_km1, solid, scan_km1, mine, away, np.eye(4), surface, ObjectRefinementConfig(embedded_share=0.0))

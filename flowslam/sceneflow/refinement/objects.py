@@ -521,9 +521,10 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
             motion_of[extra] = 0
             objects[i]["grown_points"] = int(len(extra))
     if motions and solid is not None and c.embedded_share <= 1:
+        solid_points = source[solid]
         for own, motion in motions.items():
             mine = np.flatnonzero((instance == own) & dynamic & settled)
-            if mine.size and _embedded(source, solid, mine, motion, T_ego, surface, c):
+            if mine.size and _embedded(source, solid, solid_points, mine, motion, T_ego, surface, c):
                 flow[mine], dynamic[mine] = rigid_flow(T_ego, source[mine]), False
                 objects[own]["embedded"] = True
     still = _split_instances(source, flow, dynamic & settled, instance, motion_of, objects, T_ego, interval, surface, c,
@@ -620,26 +621,28 @@ EMBED_BODY_M = 0.5
 distance (m) of its moving points."""
 
 
-def _embedded(source: np.ndarray, solid: np.ndarray, mine: np.ndarray, motion: np.ndarray, T_ego: np.ndarray,
-              surface: ScanSurface, c: ObjectRefinementConfig) -> bool:
+def _embedded(source: np.ndarray, solid: np.ndarray, solid_points: np.ndarray, mine: np.ndarray, motion: np.ndarray,
+              T_ego: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> bool:
     """Whether an object's moving points ``mine`` (indices into ``source``, frame k-1) are a
     part of a static body that its ``motion`` slid: at least ``embedded_share`` of them have
-    another point of ``solid`` (indices of the points clear of the ground) within
-    ``EMBED_RADIUS_M``, and the ego motion puts that body (the other ``solid`` points within
-    ``EMBED_BODY_M`` of them) on scan k's ``surface`` better than ``motion`` does, by
+    another point of ``solid`` (indices of the points clear of the ground; ``solid_points``
+    = ``source[solid]``) within ``EMBED_RADIUS_M``, and the ego motion puts that body (the
+    other ``solid`` points within ``EMBED_BODY_M`` of them; at most ``max_icp_points`` of
+    them, evenly strided) on scan k's ``surface`` better than ``motion`` does, by
     ``static_preference`` (:func:`_score` fitness). A walker beside a parked car touches it
     only at its edge; a moving vehicle's unflagged points move with it."""
     from scipy.spatial import cKDTree
 
     p = source[mine]
-    near = solid[in_bounds(source[solid], p.min(axis=0) - EMBED_BODY_M, p.max(axis=0) + EMBED_BODY_M)]
-    others = near[~np.isin(near, mine)]
-    if others.size == 0:
+    near = solid[in_bounds(solid_points, p.min(axis=0) - EMBED_BODY_M, p.max(axis=0) + EMBED_BODY_M)]
+    others = source[near[~np.isin(near, mine)]]
+    if len(others) == 0:
         return False
-    inside = np.isfinite(cKDTree(source[others]).query(p, distance_upper_bound=EMBED_RADIUS_M)[0]).mean()
+    inside = np.isfinite(cKDTree(others).query(p, distance_upper_bound=EMBED_RADIUS_M)[0]).mean()
     if inside < c.embedded_share:
         return False
-    body = source[others[np.isfinite(cKDTree(p).query(source[others], distance_upper_bound=EMBED_BODY_M)[0])]]
+    body = others[np.isfinite(cKDTree(p).query(others, distance_upper_bound=EMBED_BODY_M)[0])]
+    body = body[_icp_subset(len(body), c)]
     return _score(body, T_ego, surface, c)[0] >= _score(body, motion, surface, c)[0] + c.static_preference
 
 
