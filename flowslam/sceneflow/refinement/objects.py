@@ -34,8 +34,9 @@ surface, ``own_surface_m``). A moving object whose points lie inside a larger bo
 of them have other points clear of the ground within ``EMBED_RADIUS_M``) stays static
 when the ego motion explains that body better than the object's motion
 (``embedded_share``): its ICP slid a flagged part of a static body. Points of rejected or
-too small objects keep the network's flow and label, except that network-dynamic points whose ego-rigid landing spot lies on a
-surface of scan ``k`` become static (the static explanation fits the data).
+too small objects keep the network's flow and label, except that network-dynamic points
+whose ego-rigid landing spot lies on a surface of scan ``k`` become static (the static
+explanation fits the data).
 
 Scan k is indexed once per pair (:class:`~flowslam.sceneflow.refinement.clusters.ScanSurface`):
 the ICP boxes come from its BEV buckets (same points, same x order as a bisection of the

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 from flowslam.config.ssf import MotionEvidenceConfig
-from flowslam.geometry import transform_points
+from flowslam.geometry import inv, transform_points
 from flowslam.sceneflow.refinement.clusters import LocalGround, ScanSurface, above_ground, bev_clusters, bev_extent
 
 __all__ = ["RangeImage", "spherical", "geometric_movers", "slow_movers"]
@@ -183,8 +183,7 @@ def slow_movers(
         front &= np.linalg.norm(x - where, axis=1) <= c.baseline_vacated_max_m
         ask = np.flatnonzero(front & ~free)
         if ask.size:
-            T_source_old = np.linalg.inv(T_old_source)
-            free[ask] = source_image.sees_beyond(transform_points(T_source_old, where[ask]))
+            free[ask] = source_image.sees_beyond(transform_points(inv(T_old_source), where[ask]))
     return _compact_clusters(source, near[free], c)
 
 
