@@ -392,16 +392,15 @@ class ObjectsStage:
         tracked, tracked_flow = self.movers.predict(prev, T_ego)
         flow = np.where(tracked[:, None], tracked_flow, state.flow)  # last pair's movers, moved on
         dynamic = ~state.static | tracked
-        movers = seen = slow = None
+        movers = seen = None
         # free space in scan k, for the movers' test and the (opt-in) hidden-object test
         image = RangeImage(state.frame.points, evidence) if evidence.enabled or c.hidden_test else None
         if evidence.enabled:
             movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground, image)
-            slow = self._slow_movers(state, image, ground) & ~movers
-            movers |= slow
+            movers |= self._slow_movers(state, image, ground)
         above = ground.above(evidence.ground_clearance_m)  # road clusters and growth
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
-                                 state.refined.target_tree, movers, seen, surface, above, image, slow)
+                                 state.refined.target_tree, movers, seen, surface, above, image)
         accepted = np.array([o["accepted"] for o in objects.objects] + [False])  # [-1] -> False
         state.flow, state.static = objects.flow, ~objects.dynamic
         state.instance = np.where(accepted[objects.instance], objects.instance, -1)

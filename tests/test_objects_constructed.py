@@ -503,31 +503,3 @@ def test_a_bus_rear_whose_ego_landing_is_its_own_side_keeps_the_bus_motion():
     assert (~on.dynamic[bus]).sum() < 0.6 * (~off.dynamic[bus]).sum()
     error = lambda r: np.abs(r.flow[bus] - [1.0, 0.0, 0.0]).max(axis=1).mean()
     assert error(on) < 0.6 * error(off)
-
-
-def test_movers_found_only_against_an_older_scan_start_no_shifted_icp(pair, monkeypatch):
-    """The moving car, all of it flagged as movers, with scan k's free space where it was:
-    from scan k's own movers test its ICP also starts from the six shifted ego landings
-    (``hypotheses_m``); when an older scan alone flagged them (``slow``), only from the
-    network's displacement. Either way the car moves, as one instance."""
-    from flowslam.sceneflow.refinement import objects
-    from flowslam.sceneflow.refinement.visibility import geometric_movers
-
-    prev, curr, labels, T_ego = pair
-    moving = labels == 1
-    flow = geometry.rigid_flow(T_ego, prev)
-    flow[moving] += [0.8, 0.05, 0.0]
-    _, seen = geometric_movers(prev, curr, T_ego)
-    starts = []
-    register = objects._register
-    monkeypatch.setattr(objects, "_register", lambda p, *a: starts.append(len(p)) or register(p, *a))
-
-    def run(**extra) -> int:
-        starts.clear()
-        result = refine_objects(prev, flow, moving, curr, T_ego, DT, ObjectRefinementConfig(), movers=moving,
-                                seen_through=seen, **extra)
-        assert result.dynamic[moving].mean() > 0.95 and len(np.unique(result.instance[moving])) == 1
-        return len(starts)
-
-    assert run() >= 1 + len(ObjectRefinementConfig().hypotheses_m)
-    assert run(slow=moving) == 1

@@ -24,8 +24,7 @@ object's points about as well (fitness within ``static_preference``, RMSE within
 errors of a share of the object's points) or well enough (``static_fitness_accept``:
 structures that ICP can slide along) -- and are labelled dynamic when that motion
 moves their points faster than ``dynamic_speed_mps`` relative to the ego-motion flow,
-static otherwise. Objects holding geometric movers (scan k's free space; not the slow
-movers an older scan alone found) also start ICP from the ego landing
+static otherwise. Objects holding geometric movers also start ICP from the ego landing
 shifted along their axis (``hypotheses_m``), and their movers get an ICP of their own
 (a mover merged with static false positives keeps its own motion); each point then
 takes the candidate motion that puts it nearest to scan ``k``'s surface, the ego motion
@@ -425,7 +424,6 @@ def refine_objects(
     surface: ScanSurface | None = None,
     above_ground: np.ndarray | None = None,
     range_image=None,
-    slow: np.ndarray | None = None,
 ) -> ObjectRefinement:
     """Refine the flow of the candidate moving points of ``source`` (scan k-1) against
     ``target`` (scan k) given the ego motion ``T_ego`` = ``T_{k,k-1}`` (module doc), in at
@@ -449,11 +447,7 @@ def refine_objects(
     moving objects may grow (``grow_max_extent_m``). ``range_image``: a
     :class:`~flowslam.sceneflow.refinement.visibility.RangeImage` of ``target``; with it, an
     object without geometric movers or seen-through points stays static when scan k hides
-    where the ego motion puts it (:func:`_static_where_hidden`). ``slow`` (N,) bool: the
-    movers found against an older scan only
-    (:func:`~flowslam.sceneflow.refinement.visibility.slow_movers`): candidates, counted as
-    movers by the static shortcut, but they start no shifted ICP (an older scan's free space
-    says even less about where they went).
+    where the ego motion puts it (:func:`_static_where_hidden`).
     """
     from scipy.spatial import cKDTree
 
@@ -464,9 +458,8 @@ def refine_objects(
         surface = ScanSurface(target, object_target_range(c))
     movers = np.zeros(len(source), dtype=bool) if movers is None else np.asarray(movers, dtype=bool)
     seen = np.zeros(len(source), dtype=bool) if seen_through is None else np.asarray(seen_through, dtype=bool)
-    slow = np.zeros(len(source), dtype=bool) if slow is None else np.asarray(slow, dtype=bool)
     interval = dt if dt and dt > 0 else 0.1
-    scene = (source, T_ego, interval, target_tree, seen, slow, surface, above_ground, range_image, c)
+    scene = (source, T_ego, interval, target_tree, seen, surface, above_ground, range_image, c)
     result = _refine_round(np.array(flow, dtype=np.float64), np.array(dynamic, dtype=bool), movers, *scene)
     changes = []
     while len(changes) + 1 < c.iterations:
@@ -484,7 +477,7 @@ def refine_objects(
 
 
 def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, source: np.ndarray, T_ego: np.ndarray,
-                  interval: float, target_tree, seen: np.ndarray, slow: np.ndarray, surface: ScanSurface,
+                  interval: float, target_tree, seen: np.ndarray, surface: ScanSurface,
                   above_ground: np.ndarray | None, range_image, c: ObjectRefinementConfig) -> ObjectRefinement:
     """One round of :func:`refine_objects` (its arguments, prepared; ``flow`` and ``dynamic``
     are updated in place and returned in the result)."""
@@ -510,7 +503,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     grown = []  # (object, its motion, its dynamic points) to grow
     motions = {}  # object -> its own motion
     motion_of = np.full(len(source), -1, dtype=np.int64)  # index of the object motion a point took
-    scene = (source, flow, movers, seen, slow, T_ego, interval, surface, c, range_image, guesses, above_ground)
+    scene = (source, flow, movers, seen, T_ego, interval, surface, c, range_image, guesses, above_ground)
     for idx, record in _registered(clusters, *scene):
         own = instance[idx] = len(objects)
         motion = record.pop("motion", None)
@@ -655,7 +648,7 @@ def _embedded(source: np.ndarray, solid: np.ndarray, solid_points: np.ndarray, m
 
 
 def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray, movers: np.ndarray,
-                seen: np.ndarray, slow: np.ndarray, T_ego: np.ndarray, interval: float, surface: ScanSurface,
+                seen: np.ndarray, T_ego: np.ndarray, interval: float, surface: ScanSurface,
                 c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None):
     """Yields each cluster (index array into ``source``) with its :func:`_refine_object`
     record (``solid``: (N,) points clear of the ground, or None). A cluster wider than
@@ -667,8 +660,7 @@ def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray
     def refine(group):
         for idx, static_score in zip(group, _static_scores(source, group, T_ego, surface, c)):
             yield idx, _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
-                                      static_score, c, range_image, guesses, None if solid is None else solid[idx],
-                                      slow[idx])
+                                      static_score, c, range_image, guesses, None if solid is None else solid[idx])
 
     for idx, record in refine(clusters):
         parts = _components(source, idx, c)
@@ -738,12 +730,10 @@ def _target_box(surface: ScanSurface, guess: np.ndarray, ego: np.ndarray, reach:
 
 def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.ndarray, T_ego: np.ndarray,
                    interval: float, surface: ScanSurface, static_score: tuple[float, float],
-                   c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None,
-                   slow: np.ndarray | None = None) -> dict:
+                   c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None) -> dict:
     """Register one object (points ``p``, frame k-1; their flow; its geometric movers ``sub``
     and seen-through points; its ``static_score``, :func:`_score` under ``T_ego``) to scan k,
-    ``interval`` (s) after. ``slow`` (M,) bool: which of ``sub`` only an older scan flagged
-    (they start no shifted ICP). Returns its record; an accepted one also holds ``result``:
+    ``interval`` (s) after. Returns its record; an accepted one also holds ``result``:
     (landing (M,3) of each point in frame k, moving (M,) bool)."""
     static_fitness, static_rmse = static_score
     ego = transform_points(T_ego, p)  # where the points land if they are static
@@ -762,8 +752,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     T0 = np.eye(4)
     T0[:3, :3] = R
     T0[:3, 3] = np.median(p + flow - p @ R.T, axis=0)  # the network's (or carried) displacement
-    shifting = sub if slow is None else sub & ~slow  # the movers that scan k's free space found
-    mover_starts = _mover_starts(p, shifting, seen, T_ego, c)
+    mover_starts = _mover_starts(p, sub, seen, T_ego, c)
     reach = max(abs(d) for d in c.hypotheses_m) if mover_starts else 0.0
     box = _target_box(surface, transform_points(T0, p), ego, reach, c)
     record["target_points"] = int(len(box))
@@ -780,7 +769,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         record["accepted"] = True
         if not _ego_explains(static_score, fitness, rmse, min(len(p), c.max_icp_points), c):
             motions.append(_polished(q, box, T, fitness, rmse, surface, T_ego, c))
-    moving_part = p[shifting][_icp_subset(int(shifting.sum()), c)] if mover_starts else None
+    moving_part = p[sub][_icp_subset(int(sub.sum()), c)] if mover_starts else None
     joint_on_movers = _score(moving_part, motions[0], surface, c)[0] if mover_starts and motions else 0.0
     # the geometric movers alone, from shifted ego landings -- only when the object's own ICP
     # does not already explain them (no fitness, at most 1, can then beat its by static_preference)
