@@ -128,7 +128,7 @@ class SsfFrontend:
         for i in range(first, len(self.stages)):
             laps.update(_run_timed(self.stages[i:i + 1], state))
             if i == self._measured_after:  # the pose of scan k is final
-                self._advance(frame, self._poses[-1] @ state.estimate.T_prev_curr, state.estimate.T_prev_curr)
+                self._advance(frame, state.T_world_measured, state.estimate.T_prev_curr)
         est = state.estimate
         dynamic = {} if state.static is None else {"dynamic_points": int((~state.static).sum())}  # None: unsegmented
         stats = dict(est.stats, **dynamic, **state.stats, **waited, stage_ms=laps)

@@ -74,6 +74,12 @@ class PairState:
         return self.refined is not None and self.refined.accepted
 
     @property
+    def T_world_measured(self) -> np.ndarray:
+        """Scan k's own ``T_world_sensor``: the window's last pose and the measured step
+        (needs ``estimate``)."""
+        return self.history_poses[-1] @ self.estimate.T_prev_curr
+
+    @property
     def T_prior(self) -> np.ndarray:
         """The constant-velocity prior as ``T_prev_curr`` (scan k into frame k-1)."""
         return geometry.inv(self.history_poses[-1]) @ self.T_world_guess
@@ -415,7 +421,7 @@ class ObjectsStage:
 
         evidence = self.options.motion_evidence
         self._images = {i: v for i, v in self._images.items() if i >= state.frame.index - evidence.baseline_scans - 1}
-        self._images[state.frame.index] = (image, state.history_poses[-1] @ state.estimate.T_prev_curr)
+        self._images[state.frame.index] = (image, state.T_world_measured)
         old = self._older_scan(state, evidence.baseline_scans)
         if old is None:
             return np.zeros(len(state.prev.points), dtype=bool)

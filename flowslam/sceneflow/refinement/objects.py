@@ -652,8 +652,9 @@ def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray
                 c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None):
     """Yields each cluster (index array into ``source``) with its :func:`_refine_object`
     record (``solid``: (N,) points clear of the ground, or None). A cluster wider than
-    ``split_extent_m`` is also registered as its :func:`_components`, and those replace it when their registrations explain at least
-    ``split_gain`` of its points more than its own (:func:`_explained`): in a crowd or a
+    ``split_extent_m`` is also registered as its :func:`_components`, and those replace it
+    when their registrations explain at least ``split_gain`` of its points more than its
+    own (:func:`_explained`): in a crowd or a
     queue one cluster holds several movers, and one rigid motion cannot register them
     all; but a car whose sparse candidate points fall into several components is better
     registered whole (its pieces slide along their own faces, and explain about as much)."""
