@@ -542,13 +542,15 @@ def flow_eval_command(
         e = result["ego_motion_error"]
         if e["trans_m_mean"] is not None:
             table.add_row("ego motion error (m / deg per step)", f"{e['trans_m_mean']:.4f} / {e['rot_deg_mean']:.4f}", "0")
-        objects = result.get("objects")
-        if objects is not None:  # the GT has instances and the frontend gives them
+        for label, name in (("objects", "objects"), ("objects in the flow region", "objects_in_region")):
+            objects = result.get(name)
+            if objects is None:  # the GT has no instances or the frontend gives none
+                continue
             for key in ("recall", "precision", "median_speed_error_mps", "median_velocity_error_mps",
                         "id_switches_per_100_pairs"):
                 value = objects[key]
-                table.add_row(f"objects: {key}", "-" if value is None else f"{value:.4f}", "")
-            table.add_row("objects: GT / predicted / found", f"{objects['gt_objects']} / "
+                table.add_row(f"{label}: {key}", "-" if value is None else f"{value:.4f}", "")
+            table.add_row(f"{label}: GT / predicted / found", f"{objects['gt_objects']} / "
                           f"{objects['predicted_objects']} / {objects['found']}", "")
         Console().print(table)
         if json_out is not None:

@@ -22,7 +22,7 @@ from flowslam import geometry
 from flowslam.config import PipelineConfig
 from flowslam.frame import Frame
 from flowslam.interfaces import FrontendOutput
-from flowslam.sceneflow.metrics import flow_metrics
+from flowslam.sceneflow.metrics import av2_eval_mask, flow_metrics
 
 
 class _Accumulator:
@@ -73,6 +73,9 @@ class FlowEvaluation:
         self.flow = flow
         self.method, self.reference = _Accumulator(), _Accumulator()
         self.objects = ObjectScores()
+        self.objects_in_region = ObjectScores()
+        """The same metrics on the points the flow metrics score (AV2's evaluation region:
+        non-ground, within the close box): the objects of those points only."""
         self._tracks = MovingObjectsLog()  # the method's objects with track ids, as ``flowslam run`` logs them
         self.ego_t: list[float] = []
         self.ego_r: list[float] = []
@@ -101,19 +104,24 @@ class FlowEvaluation:
             self.ego_r.append(float(np.degrees(geometry.rotation_angle(E))))
         self.dts.append(frame.timestamp - prev.timestamp)
         if prev.gt_instance is not None and out.instance_ids is not None and out.static_mask is not None:
-            self._score_objects(prev, out, T_curr_prev, self.dts[-1], self._tracks.objects[logged:])
+            self._score_objects(prev, out, T_curr_prev, self.dts[-1], self._tracks.objects[logged:],
+                                av2_eval_mask(prev.points, ground))
 
     def _score_objects(self, prev: Frame, out: FrontendOutput, T_curr_prev: np.ndarray, dt: float,
-                       logged: list) -> None:
-        """Instance metrics of the pair (:mod:`flowslam.sceneflow.object_metrics`); ``dt`` (s)."""
+                       logged: list, region: np.ndarray) -> None:
+        """Instance metrics of the pair (:mod:`flowslam.sceneflow.object_metrics`); ``dt`` (s);
+        ``region`` (N,) bool: the points of scan k-1 the flow metrics score."""
         from flowslam.moving_objects import moving_objects
 
         gt_dynamic = np.asarray(prev.gt_dynamic, bool)
         gt = np.where(gt_dynamic, prev.gt_instance, -1)
         pred = np.where(np.asarray(out.static_mask, bool), -1, out.instance_ids)
         truth = moving_objects(prev.points, prev.gt_flow, prev.gt_instance, geometry.inv(T_curr_prev), dt, ~gt_dynamic)
-        self.objects.add(pred, gt, {o.instance_id: o.velocity for o in logged},
-                         {o.instance_id: o.velocity for o in truth}, {o.instance_id: o.track_id for o in logged})
+        velocity = {o.instance_id: o.velocity for o in logged}
+        gt_velocity = {o.instance_id: o.velocity for o in truth}
+        track = {o.instance_id: o.track_id for o in logged}
+        self.objects.add(pred, gt, velocity, gt_velocity, track)
+        self.objects_in_region.add(np.where(region, pred, -1), np.where(region, gt, -1), velocity, gt_velocity, track)
 
     def result(self, frontend_name: str) -> dict:
         """Every metric, JSON-serialisable."""
@@ -125,6 +133,7 @@ class FlowEvaluation:
             "flow": self.method.metrics(dt),
             "ego-gt reference": self.reference.metrics(dt),
             "objects": self.objects.result() if self.objects.pairs else None,
+            "objects_in_region": self.objects_in_region.result() if self.objects_in_region.pairs else None,
             "ego_motion_error": {
                 "trans_m_mean": float(np.mean(t)) if t else None,
                 "trans_m_rmse": float(np.sqrt(np.mean(np.square(t)))) if t else None,

@@ -95,3 +95,25 @@ def test_flow_eval_reports_object_metrics_for_ssf_on_simulation(tmp_path):
     assert ssf["gt_objects"] == gt["gt_objects"] > 0
     assert 0 < ssf["found"] <= ssf["gt_objects"]
     assert ssf["median_speed_error_mps"] is not None and ssf["median_speed_error_mps"] < 1.0
+
+
+def test_flow_eval_scores_objects_also_in_the_flow_metrics_region():
+    """Two moving GT objects found exactly, one 10 m ahead and one 45 m ahead: the flow
+    metrics' region (|x|, |y| <= 35 m, non-ground) holds only the first."""
+    from flowslam.flow_eval import FlowEvaluation
+    from flowslam.frame import Frame
+    from flowslam.interfaces import FrontendOutput
+
+    rng = np.random.default_rng(0)
+    points = np.concatenate([rng.normal([10.0, 0.0, 0.5], 0.3, (60, 3)), rng.normal([45.0, 0.0, 0.5], 0.3, (60, 3))])
+    ids = np.repeat([7, 8], 60)
+    flow = np.tile([1.0, 0.0, 0.0], (120, 1))  # the sensor stands still, both objects drive 10 m/s
+    frames = [Frame(i, 0.1 * i, points, gt_pose=np.eye(4), gt_flow=flow, gt_dynamic=np.ones(120, bool),
+                    gt_instance=ids) for i in range(2)]
+    sink = FlowEvaluation(np.stack([np.eye(4)] * 2))
+    for frame in frames:
+        sink.on_output(frame, FrontendOutput(frame.index, np.eye(4) if frame.index else None, flow=flow,
+                                             static_mask=np.zeros(120, bool), instance_ids=ids))
+    result = sink.result("exact")
+    assert (result["objects"]["gt_objects"], result["objects"]["found"]) == (2, 2)
+    assert (result["objects_in_region"]["gt_objects"], result["objects_in_region"]["found"]) == (1, 1)
