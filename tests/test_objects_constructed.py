@@ -133,6 +133,29 @@ def test_a_partly_flagged_car_grows_to_its_whole_body(pair):
     assert len(np.unique(ids)) == 1 and ids[0] >= 0 and grown.objects[int(ids[0])]["grown_points"] > 0
 
 
+def test_a_car_flagged_only_above_takes_its_footprint(pair):
+    """The "network" flags only the upper part of the moving car (z > 0.9 m) and there is no
+    free-space evidence (so no growth): with ``grow_footprint_cell_m`` the points clear of
+    the ground in the object's own BEV cells that its motion explains join it (the lower
+    sides), as a walker's legs join its flagged torso; without, they stay static. The parked
+    car 1.7 m beside the lane and the road under the car stay static."""
+    prev, curr, labels, T_ego = pair
+    moving = labels == 1
+    top = moving & (prev[:, 2] > 0.9)
+    flow = geometry.rigid_flow(T_ego, prev)
+    flow[top] += [0.8, 0.05, 0.0]
+    above = prev[:, 2] > 0.1  # the road is at z = -0.01
+    common = (prev, flow, top, curr, T_ego, DT)
+    taken = refine_objects(*common, ObjectRefinementConfig(grow_footprint_cell_m=0.3), above_ground=above)
+    plain = refine_objects(*common, ObjectRefinementConfig(grow_footprint_cell_m=0.0), above_ground=above)
+    lower = moving & ~top & above
+    assert plain.dynamic[lower].mean() < 0.1
+    assert taken.dynamic[lower].mean() > 0.9 and taken.dynamic[moving].mean() > 0.9
+    assert not taken.dynamic[labels != 1].any()
+    ids = taken.instance[moving & taken.dynamic]
+    assert len(np.unique(ids)) == 1 and taken.objects[int(ids[0])]["footprint_points"] > 0
+
+
 def test_two_moving_cars_become_two_instances_and_the_rest_is_the_static_set():
     """Segmentation of a two-car scene: the car at 10 m/s and the oncoming one at 8 m/s
     (flagged with the parked car by the "network", their flow a rough guess) come out as

@@ -222,3 +222,28 @@ def test_the_opt_in_own_bin_slow_test_finds_more_of_the_walker():
     walker = _walker_mask(now_world, y_now)
     assert b[walker].sum() > 1.1 * a[walker].sum() > 0
     assert not b[~walker].any()
+
+
+def test_a_walker_walking_towards_the_sensor_is_within_the_old_relative_margin_but_not_the_new():
+    """A walker 25 m ahead of a standing sensor comes 0.6 m nearer over the baseline: along
+    its rays the older scan saw its old body 0.6 m behind where it is now. The seen-through
+    test's margins (0.3 m + 2 % of 25 m = 0.8 m) call that no free space; the slow-mover
+    test's own relative margin (``baseline_window_relative_margin`` 0.005: 0.3 + 0.125 m)
+    does. The wall behind, the ground and the post beside it stay unflagged either way."""
+    def scan(x: float) -> tuple[np.ndarray, np.ndarray]:
+        walker = _box((x, 0.0))
+        rest = np.concatenate([_grid((30.0, -4.0, -HEIGHT), (30.0, 4.0, 1.0)), _box((25.0, -2.0)),
+                               _grid((-4.0, -5.0, -HEIGHT), (31.0, 5.0, -HEIGHT), step=0.25)])
+        rest = rest[~_behind_box(rest, walker.min(axis=0), walker.max(axis=0))]
+        return np.concatenate([rest, walker]), np.arange(len(rest) + len(walker)) >= len(rest)
+
+    old, _ = scan(25.6)
+    prev, walker = scan(25.0)
+    flagged = {}
+    for name, relative in (("old", None), ("new", 0.005)):
+        c = MotionEvidenceConfig(baseline_window_relative_margin=relative, baseline_vacated=False)
+        flagged[name] = slow_movers(prev, np.eye(4), RangeImage(old, c), c)
+    # the face towards the sensor (the box's other faces are not ray-cast), clear of the ground
+    front = walker & (prev[:, 0] < 24.81) & (prev[:, 2] > -HEIGHT + 0.35)
+    assert not flagged["old"].any()
+    assert flagged["new"][front].mean() > 0.9 and not flagged["new"][~walker].any()

@@ -521,6 +521,11 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
             flow[extra], dynamic[extra], settled[extra], instance[extra] = landing - source[extra], moving, True, i
             motion_of[extra] = 0
             objects[i]["grown_points"] = int(len(extra))
+    if grown and solid is not None and c.grow_footprint_cell_m > 0:
+        for i, extra, landing, moving in _footprint(source, solid, grown, settled, T_ego, surface, interval, c):
+            flow[extra], dynamic[extra], settled[extra], instance[extra] = landing - source[extra], moving, True, i
+            motion_of[extra] = 0
+            objects[i]["footprint_points"] = int(len(extra))
     if motions and solid is not None and c.embedded_share <= 1:
         solid_points = source[solid]
         for own, motion in motions.items():
@@ -596,21 +601,58 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
             members = solid[labels == comp]
             if seen[members].sum() < c.grow_min_seen_through:
                 continue
-            landing = transform_points(motion, source[members])
-            explained = _plane_distances(landing, surface, c) < c.score_plane_m
-            if explained.mean() < c.min_fitness:
-                continue
-            ego_fit = _score(source[members], T_ego, surface, c)[0]
-            if ego_fit >= explained.mean() - c.static_preference:
-                continue  # the ego motion explains it as well: static structure next to the mover
-            extra = explained & ~taken[members]
-            if not extra.any():
-                continue
-            pts = members[extra]
-            ego = transform_points(T_ego, source[pts])
-            moving = np.linalg.norm(landing[extra] - ego, axis=1) > c.dynamic_speed_mps * interval
-            taken[pts] = True
-            yield i, pts, np.where(moving[:, None], landing[extra], ego), moving  # static: the ego landing
+            joined = _joins(source, members, taken, motion, T_ego, surface, interval, c)
+            if joined is not None:
+                taken[joined[0]] = True
+                yield (i, *joined)
+
+
+def _joins(source: np.ndarray, members: np.ndarray, taken: np.ndarray, motion: np.ndarray, T_ego: np.ndarray,
+           surface: ScanSurface, interval: float, c: ObjectRefinementConfig):
+    """The points of ``members`` (indices into ``source``) that join a moving object of
+    ``motion``: when its motion puts at least ``min_fitness`` of them on scan k's surface
+    and the ego motion puts fewer there by ``static_preference`` (else they are static
+    structure beside the mover: a wall a pedestrian walks along), those its motion explains
+    and not yet ``taken``, as (points, their landings (frame k; the ego landing where not
+    moving), moving); else None."""
+    landing = transform_points(motion, source[members])
+    explained = _plane_distances(landing, surface, c) < c.score_plane_m
+    if explained.mean() < c.min_fitness:
+        return None
+    if _score(source[members], T_ego, surface, c)[0] >= explained.mean() - c.static_preference:
+        return None
+    extra = explained & ~taken[members]
+    if not extra.any():
+        return None
+    pts = members[extra]
+    ego = transform_points(T_ego, source[pts])
+    moving = np.linalg.norm(landing[extra] - ego, axis=1) > c.dynamic_speed_mps * interval
+    return pts, np.where(moving[:, None], landing[extra], ego), moving  # static: the ego landing
+
+
+def _footprint(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarray, T_ego: np.ndarray,
+               surface: ScanSurface, interval: float, c: ObjectRefinementConfig):
+    """For each moving object ``(index, motion, its dynamic points)``: the unsettled points of
+    ``solid`` (above-ground point indices) in the object's own BEV cells (``grow_footprint_cell_m``)
+    that :func:`_joins` lets join it, as ``(index, points, landings, moving)``. A walker's
+    legs under its flagged torso: the same footprint needs no free space of its own."""
+    taken = settled.copy()
+    for i, motion, core in grown:
+        cell = c.grow_footprint_cell_m
+        cells = np.unique(np.floor(source[core, :2] / cell).astype(np.int64), axis=0)
+        lo, hi = cells.min(axis=0) * cell, (cells.max(axis=0) + 1) * cell
+        near = solid[in_bounds(source[solid, :2], lo, hi)]
+        near = near[~taken[near]]
+        if near.size == 0:
+            continue
+        own = np.floor(source[near, :2] / cell).astype(np.int64)
+        members = near[(own[:, None, :] == cells[None, :, :]).all(axis=2).any(axis=1)]
+        if members.size == 0:
+            continue
+        joined = _joins(source, members, taken, motion, T_ego, surface, interval, c)
+        if joined is not None:
+            taken[joined[0]] = True
+            yield (i, *joined)
 
 
 EMBED_RADIUS_M = 0.15

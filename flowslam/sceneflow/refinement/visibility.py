@@ -176,7 +176,8 @@ def slow_movers(
         free = old_image.sees_beyond(x, own_bin=True, margin_m=c.baseline_margin_m,
                                      relative_margin=c.baseline_relative_margin)
     else:
-        free = old_image.sees_beyond(x)
+        free = old_image.sees_beyond(x, margin_m=c.baseline_window_margin_m,
+                                     relative_margin=c.baseline_window_relative_margin)
     if c.baseline_vacated and source_image is not None:
         front, where = old_image.in_front(x)
         # only just behind what left: farther behind is what its leaving revealed
