@@ -133,27 +133,59 @@ def test_a_partly_flagged_car_grows_to_its_whole_body(pair):
     assert len(np.unique(ids)) == 1 and ids[0] >= 0 and grown.objects[int(ids[0])]["grown_points"] > 0
 
 
-def test_a_car_flagged_only_above_takes_its_footprint(pair):
-    """The "network" flags only the upper part of the moving car (z > 0.9 m) and there is no
+def _walker_pair():
+    """Scan k-1 and scan k (sensor frames; labels of scan k-1: 0 static, 1 walker) of a road,
+    a wall and a 0.5 x 0.4 x 1.7 m walker crossing at 1.5 m/s 10 m ahead; the sensor drives
+    0.8 m per scan along x (``T_ego`` = T_{k,k-1})."""
+    def scene(scan: int):
+        road = _grid(np.array([30.0, 0, 0]), np.array([0, 16.0, 0]), np.array([-5.0, -8.0, -0.01]))
+        wall = _grid(np.array([30.0, 0, 0]), np.array([0, 0, 3.0]), np.array([-5.0, 8.0, 0.0]))
+        L, W, H = np.array([0.5, 0, 0]), np.array([0, 0.4, 0]), np.array([0, 0, 1.7])
+        o = np.array([10.0, -2.0 + 0.15 * scan, 0.0])
+        walker = np.concatenate([_grid(L, H, o), _grid(L, H, o + W), _grid(W, H, o), _grid(W, H, o + L)])
+        parts = [road, wall, walker]
+        return np.concatenate(parts), np.concatenate([np.full(len(p), label) for p, label in zip(parts, [0, 0, 1])])
+
+    world_prev, labels = scene(0)
+    world_curr, _ = scene(1)
+    T_world_curr = geometry.from_euler("z", 0.0, t=[0.8, 0.0, 0.0])
+    return world_prev, geometry.transform_points(geometry.inv(T_world_curr), world_curr), labels, geometry.inv(T_world_curr)
+
+
+def test_a_walker_flagged_only_above_takes_its_footprint():
+    """The "network" flags only the walker's upper body (z > 0.9 m) and there is no
     free-space evidence (so no growth): with ``grow_footprint_cell_m`` the points clear of
-    the ground in the object's own BEV cells that its motion explains join it (the lower
-    sides), as a walker's legs join its flagged torso; without, they stay static. The parked
-    car 1.7 m beside the lane and the road under the car stay static."""
+    the ground in the object's own BEV cells that its motion explains join it (its legs);
+    without, they stay static. The road under it and the wall stay static."""
+    prev, curr, labels, T_ego = _walker_pair()
+    walker = labels == 1
+    top = walker & (prev[:, 2] > 0.9)
+    flow = geometry.rigid_flow(T_ego, prev)
+    flow[top] += [0.0, 0.12, 0.0]  # the network's guess: 3 cm short
+    above = prev[:, 2] > 0.1  # the road is at z = -0.01
+    common = (prev, flow, top, curr, T_ego, DT)
+    taken = refine_objects(*common, ObjectRefinementConfig(grow_footprint_cell_m=0.3), above_ground=above)
+    plain = refine_objects(*common, ObjectRefinementConfig(grow_footprint_cell_m=0.0), above_ground=above)
+    legs = walker & ~top & above
+    assert plain.dynamic[top].mean() > 0.9 and plain.dynamic[legs].mean() < 0.1
+    assert taken.dynamic[legs].mean() > 0.9
+    assert not taken.dynamic[labels != 1].any()
+    ids = taken.instance[walker & taken.dynamic]
+    assert len(np.unique(ids)) == 1 and taken.objects[int(ids[0])]["footprint_points"] > 0
+
+
+def test_a_car_flagged_only_above_does_not_take_its_footprint(pair):
+    """The same on the moving car (4.2 m long): wider than ``FOOTPRINT_MAX_EXTENT_M``, so its
+    unflagged lower sides join only by the growth's free-space test (here: none given)."""
     prev, curr, labels, T_ego = pair
     moving = labels == 1
     top = moving & (prev[:, 2] > 0.9)
     flow = geometry.rigid_flow(T_ego, prev)
     flow[top] += [0.8, 0.05, 0.0]
-    above = prev[:, 2] > 0.1  # the road is at z = -0.01
-    common = (prev, flow, top, curr, T_ego, DT)
-    taken = refine_objects(*common, ObjectRefinementConfig(grow_footprint_cell_m=0.3), above_ground=above)
-    plain = refine_objects(*common, ObjectRefinementConfig(grow_footprint_cell_m=0.0), above_ground=above)
-    lower = moving & ~top & above
-    assert plain.dynamic[lower].mean() < 0.1
-    assert taken.dynamic[lower].mean() > 0.9 and taken.dynamic[moving].mean() > 0.9
-    assert not taken.dynamic[labels != 1].any()
-    ids = taken.instance[moving & taken.dynamic]
-    assert len(np.unique(ids)) == 1 and taken.objects[int(ids[0])]["footprint_points"] > 0
+    above = prev[:, 2] > 0.1
+    result = refine_objects(prev, flow, top, curr, T_ego, DT, ObjectRefinementConfig(grow_footprint_cell_m=0.3),
+                            above_ground=above)
+    assert result.dynamic[top].mean() > 0.9 and result.dynamic[moving & ~top & above].mean() < 0.1
 
 
 def test_two_moving_cars_become_two_instances_and_the_rest_is_the_static_set():
