@@ -214,3 +214,31 @@ def test_geometric_movers_are_precise_on_simulated_traffic(sim_pair):
     dyn = src.gt_dynamic.astype(bool)
     assert movers.sum() > 50 and dyn[movers].mean() > 0.95
     assert seen[movers].any() and dyn[seen].mean() > 0.95
+
+
+def test_a_ground_ring_is_a_line_and_takes_its_normal_across_the_gap_to_the_next():
+    """Two rings of a sparse sensor on flat ground, 20 and 21.6 m away, as the refinement
+    sees them (a voxel centroid every 0.4 m of arc, 3 cm of range noise in z). Within the
+    normals' 1.2 m radius each point sees only its own ring: a line, no thicker across than
+    along z, so its smallest axis tilts towards the radial direction and pulls the pitch.
+    With ``min_plane_spread`` such a point is asked again within ``line_radius_m``, which
+    reaches the other ring: a plane, with a vertical normal. Without that radius it is
+    left out."""
+    from flowslam.sceneflow.refinement.static import _planar_points
+
+    rng = np.random.default_rng(3)
+    rings = []
+    for r in (20.0, 21.6):
+        az = np.arange(-0.3, 0.3, 0.4 / r)
+        rings.append(np.stack([r * np.cos(az), r * np.sin(az), -1.8 + rng.normal(0, 0.03, len(az))], axis=1))
+    points = np.concatenate(rings)
+
+    def tilt_deg(normals):
+        return np.degrees(np.arccos(np.clip(np.abs(normals[:, 2]), 0, 1)))
+
+    _, plain = _planar_points(points, FlowRefinementConfig(min_plane_spread=0.0))
+    assert np.median(tilt_deg(plain)) > 30  # the ring's own neighbourhood: a tilted axis
+    kept, wide = _planar_points(points, FlowRefinementConfig(min_plane_spread=0.2, line_radius_m=2.5))
+    assert len(kept) > 0.9 * len(points) and np.median(tilt_deg(wide)) < 3
+    dropped, _ = _planar_points(points, FlowRefinementConfig(min_plane_spread=0.2, line_radius_m=0.0))
+    assert len(dropped) == 0

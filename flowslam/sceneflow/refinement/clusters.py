@@ -30,6 +30,7 @@ __all__ = [
     "grid_voxel_ids",
     "in_bounds",
     "lowest_per_cell",
+    "neighbourhood_covariances",
     "plane_normals",
 ]
 
@@ -164,17 +165,26 @@ def grid_voxel_ids(points: np.ndarray, lo: np.ndarray, cell: float, shape: tuple
     return np.ravel_multi_index((ijk[:, 0], ijk[:, 1], ijk[:, 2]), shape, mode="clip")
 
 
-def plane_normals(tree, points: np.ndarray, idx: np.ndarray, radius: float, k: int = 20) -> np.ndarray:
-    """(len(idx),3) unit normals of ``points[idx]``: smallest principal axis of their (at
-    most ``k``) neighbours within ``radius`` (``tree``: a cKDTree over ``points``); a point
-    with < 3 neighbours gets NaN, so does one without a unique smallest axis (a line)."""
+def neighbourhood_covariances(tree, points: np.ndarray, idx: np.ndarray, radius: float,
+                              k: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """(len(idx),3,3) covariances (m^2) of the (at most ``k``) neighbours of ``points[idx]``
+    within ``radius`` (``tree``: a cKDTree over ``points``; each point is its own neighbour),
+    and their neighbour counts (len(idx),)."""
     dist, nb = tree.query(points[idx], k=min(k, len(points)), distance_upper_bound=radius)
     dist, nb = dist.reshape(len(idx), -1), nb.reshape(len(idx), -1)
     valid = np.isfinite(dist)
     pts = points[np.where(valid, nb, 0)] * valid[..., None]
-    n = valid.sum(axis=1).astype(np.float64)
+    n = valid.sum(axis=1)
     mean = pts.sum(axis=1) / n[:, None]
     cov = np.matmul(pts.transpose(0, 2, 1), pts) / n[:, None, None] - mean[:, :, None] * mean[:, None, :]
+    return cov, n
+
+
+def plane_normals(tree, points: np.ndarray, idx: np.ndarray, radius: float, k: int = 20) -> np.ndarray:
+    """(len(idx),3) unit normals of ``points[idx]``: smallest principal axis of their (at
+    most ``k``) neighbours within ``radius`` (``tree``: a cKDTree over ``points``); a point
+    with < 3 neighbours gets NaN, so does one without a unique smallest axis (a line)."""
+    cov, n = neighbourhood_covariances(tree, points, idx, radius, k)
     normals = smallest_eigenvectors(cov, symmetric_eigenvalues(cov)[:, 0])
     normals[n < 3] = np.nan
     return normals

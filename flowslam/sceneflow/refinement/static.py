@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from flowslam.config.ssf import FlowRefinementConfig
 from flowslam.geometry import transform_points
+from flowslam.sceneflow.refinement.clusters import neighbourhood_covariances
 from flowslam.sceneflow.refinement.symmetric3 import smallest_eigenvectors, symmetric_eigenvalues
 
 __all__ = ["RefinedFlow", "refine_static_flow"]
@@ -103,16 +104,43 @@ def _covariances(points: np.ndarray, radius: float, max_nn: int = 20) -> np.ndar
     return np.asarray(cloud.covariances)
 
 
-def _planar_points(points: np.ndarray, c: FlowRefinementConfig) -> tuple[np.ndarray, np.ndarray]:
-    """The points (N,3, m) whose neighbourhood (``normal_radius_m``, at most 20 points) is a
-    plane (surface variation at most ``max_surface_variation``) and their unit normals.
+LINE_NEIGHBOURS = 40
+"""Neighbours (at most) of the wider neighbourhood of a line-like target point."""
 
-    Leaving the others out removed most of the bias of the steps on simulated dt (pitch
-    +0.0018 -> +0.0006 deg, x -0.78 -> -0.11 mm per step; docs/mapping.md). Open3D gives
-    the identity covariance to points with fewer than 3 neighbours: never planar."""
+
+def _is_plane(values: np.ndarray, c: FlowRefinementConfig) -> np.ndarray:
+    """(N,) bool: neighbourhoods (ascending covariance eigenvalues (N,3)) that are planes:
+    surface variation at most ``max_surface_variation`` and, with ``min_plane_spread``, a
+    middle eigenvalue at least that share of the largest (spread in two directions)."""
+    plane = values[:, 0] <= c.max_surface_variation * values.sum(axis=1)
+    return plane & (values[:, 1] >= c.min_plane_spread * values[:, 2]) if c.min_plane_spread > 0 else plane
+
+
+def _planar_points(points: np.ndarray, c: FlowRefinementConfig, tree=None) -> tuple[np.ndarray, np.ndarray]:
+    """The points (N,3, m) whose neighbourhood (``normal_radius_m``, at most 20 points) is a
+    plane (:func:`_is_plane`) and their unit normals. A neighbourhood that is flat but a
+    line (one ring's stretch: ``min_plane_spread``) is asked again within ``line_radius_m``
+    (at most ``LINE_NEIGHBOURS`` points; ``tree``: a cKDTree over ``points``, built here when
+    None), and the point keeps that plane's normal when it is one.
+
+    Leaving the non-planar points out removed most of the bias of the steps on simulated dt
+    (pitch +0.0018 -> +0.0006 deg, x -0.78 -> -0.11 mm per step; docs/mapping.md); a line's
+    smallest axis lies anywhere across it, and with range noise it tilts towards the
+    radial direction (on a 32-beam sensor: a pitch every step, docs/sceneflow_evaluation.md,
+    stop 35). Open3D gives the identity covariance to points with fewer than 3 neighbours:
+    never planar."""
     cov = _covariances(points, c.normal_radius_m)
     values = symmetric_eigenvalues(cov)
-    planar = values[:, 0] <= c.max_surface_variation * values.sum(axis=1)
+    planar = _is_plane(values, c)
+    line = np.flatnonzero((values[:, 0] <= c.max_surface_variation * values.sum(axis=1)) & ~planar)
+    if line.size and c.line_radius_m > 0:  # one ring's stretch: ask a wider neighbourhood
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(points) if tree is None else tree
+        wide, count = neighbourhood_covariances(tree, points, line, c.line_radius_m, LINE_NEIGHBOURS)
+        wide_values = symmetric_eigenvalues(wide)
+        kept = _is_plane(wide_values, c) & (count >= 3)
+        cov[line[kept]], values[line[kept]], planar[line[kept]] = wide[kept], wide_values[kept], True
     normals = smallest_eigenvectors(cov[planar], values[planar, 0])
     ok = np.isfinite(normals[:, 0])  # a zero covariance (coincident neighbours) has no normal
     return points[planar][ok], normals[ok]
@@ -190,7 +218,8 @@ def refine_static_flow(
     empty = np.zeros((0, 3))
     if len(src_points) < 10 or len(tgt_points) < 10:
         return RefinedFlow(empty, empty, T_init.copy(), False, tgt_points, dict(stats, refine_reason="too few points"))
-    planar, normals = _planar_points(tgt_points, c)  # ICP and snapping use these only
+    target_tree = cKDTree(tgt_points)  # the overlap counts every surface, planar or not
+    planar, normals = _planar_points(tgt_points, c, target_tree)  # ICP and snapping use these only
     stats["refine_target_not_planar"] = len(tgt_points) - len(planar)
     if len(planar) < 10:
         return RefinedFlow(empty, empty, T_init.copy(), False, tgt_points,
@@ -201,7 +230,6 @@ def refine_static_flow(
     p = src_points
     x = transform_points(T, p)
     reach = c.correspondence_m[-1]
-    target_tree = cKDTree(tgt_points)  # the overlap counts every surface, planar or not
     fitness = _fitness(target_tree, x, reach)
     stats.update(refine_fitness=fitness, refine_correction_m=float(np.linalg.norm(T[:3, 3] - T_init[:3, 3])))
     if fitness < c.min_fitness:
