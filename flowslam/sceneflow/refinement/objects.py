@@ -644,11 +644,10 @@ def _footprint(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.n
     that :func:`_joins` lets join it, as ``(index, points, landings, moving)``, for objects
     whose moving points span at most ``FOOTPRINT_MAX_EXTENT_M`` (BEV diagonal). A walker's
     legs under its flagged torso: the same footprint needs no free space of its own."""
-    taken = settled.copy()
+    taken, cell = settled.copy(), c.grow_footprint_cell_m
     for i, motion, core in grown:
         if np.hypot(*np.ptp(source[core, :2], axis=0)) > FOOTPRINT_MAX_EXTENT_M:
             continue
-        cell = c.grow_footprint_cell_m
         cells = np.unique(np.floor(source[core, :2] / cell).astype(np.int64), axis=0)
         lo, hi = cells.min(axis=0) * cell, (cells.max(axis=0) + 1) * cell
         near = solid[in_bounds(source[solid, :2], lo, hi)]
