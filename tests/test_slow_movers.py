@@ -159,22 +159,25 @@ def _behind_box(points: np.ndarray, lo, hi) -> np.ndarray:
     return (enter <= leave) & (enter > 0) & (enter < 1.0 - 1e-6)
 
 
+def _walker_on_axis(x: float, wall_x: float, post_x: float, ground_to: float) -> tuple[np.ndarray, np.ndarray]:
+    """A standing sensor's scan (its frame, m), ray-cast from the origin: a wall across at
+    ``wall_x``, a post at (``post_x``, -2), the ground up to ``ground_to`` and a walker at
+    (``x``, 0), with the walker's mask."""
+    walker = _box((x, 0.0))
+    rest = np.concatenate([_grid((wall_x, -4.0, -HEIGHT), (wall_x, 4.0, 1.0)), _box((post_x, -2.0)),
+                           _grid((-4.0, -5.0, -HEIGHT), (ground_to, 5.0, -HEIGHT), step=0.25)])
+    rest = rest[~_behind_box(rest, walker.min(axis=0), walker.max(axis=0))]
+    return np.concatenate([rest, walker]), np.arange(len(rest) + len(walker)) >= len(rest)
+
+
 def test_a_walker_walking_away_leaves_the_place_in_front_of_where_it_is_now():
     """The walker walks straight away from a standing sensor, 0.7 m in seven scans: the older
     scan saw its old body in front of where it is now (no free space there), and scan k-1
     sees through that old body's place. ``baseline_vacated`` flags it; the wall and ground
     behind it (now seen, then hidden), the pillar and the rest stay unflagged, and nothing
     is flagged without the option or without scan k-1's range image."""
-    def scan(x: float) -> tuple[np.ndarray, np.ndarray]:
-        """The scene with the walker at (x, 0), ray-cast from the origin; its walker mask."""
-        walker = _box((x, 0.0))
-        rest = np.concatenate([_grid((14.0, -4.0, -HEIGHT), (14.0, 4.0, 1.0)), _box((10.0, -2.0)),
-                               _grid((-4.0, -5.0, -HEIGHT), (16.0, 5.0, -HEIGHT), step=0.25)])
-        rest = rest[~_behind_box(rest, walker.min(axis=0), walker.max(axis=0))]
-        return np.concatenate([rest, walker]), np.arange(len(rest) + len(walker)) >= len(rest)
-
-    old, _ = scan(9.3)
-    prev, walker = scan(10.0)
+    old, _ = _walker_on_axis(9.3, wall_x=14.0, post_x=10.0, ground_to=16.0)
+    prev, walker = _walker_on_axis(10.0, wall_x=14.0, post_x=10.0, ground_to=16.0)
     c = MotionEvidenceConfig(baseline_vacated=True)
     flagged = slow_movers(prev, np.eye(4), RangeImage(old, c), c, source_image=RangeImage(prev, c))
     assert flagged[walker].mean() > 0.5
@@ -230,15 +233,8 @@ def test_a_walker_walking_towards_the_sensor_is_within_the_old_relative_margin_b
     test's margins (0.3 m + 2 % of 25 m = 0.8 m) call that no free space; the slow-mover
     test's own relative margin (``baseline_window_relative_margin`` 0.005: 0.3 + 0.125 m)
     does. The wall behind, the ground and the post beside it stay unflagged either way."""
-    def scan(x: float) -> tuple[np.ndarray, np.ndarray]:
-        walker = _box((x, 0.0))
-        rest = np.concatenate([_grid((30.0, -4.0, -HEIGHT), (30.0, 4.0, 1.0)), _box((25.0, -2.0)),
-                               _grid((-4.0, -5.0, -HEIGHT), (31.0, 5.0, -HEIGHT), step=0.25)])
-        rest = rest[~_behind_box(rest, walker.min(axis=0), walker.max(axis=0))]
-        return np.concatenate([rest, walker]), np.arange(len(rest) + len(walker)) >= len(rest)
-
-    old, _ = scan(25.6)
-    prev, walker = scan(25.0)
+    old, _ = _walker_on_axis(25.6, wall_x=30.0, post_x=25.0, ground_to=31.0)
+    prev, walker = _walker_on_axis(25.0, wall_x=30.0, post_x=25.0, ground_to=31.0)
     flagged = {}
     for name, relative in (("old", None), ("new", 0.005)):
         c = MotionEvidenceConfig(baseline_window_relative_margin=relative, baseline_vacated=False)

@@ -516,16 +516,17 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
             if motion is not None and moving.any():
                 grown.append((own, motion, idx[moving]))
     solid = None if above_ground is None else np.flatnonzero(np.asarray(above_ground, bool) & near)
+
+    def join(joined, key: str) -> None:  # (object, points, landings, moving) that join moving objects
+        for i, extra, landing, moving in joined:
+            flow[extra], dynamic[extra], settled[extra], instance[extra] = landing - source[extra], moving, True, i
+            motion_of[extra] = 0
+            objects[i][key] = int(len(extra))
+
     if grown and solid is not None and c.grow_max_extent_m > 0:
-        for i, extra, landing, moving in _grow(source, solid, grown, settled, seen, T_ego, surface, interval, c):
-            flow[extra], dynamic[extra], settled[extra], instance[extra] = landing - source[extra], moving, True, i
-            motion_of[extra] = 0
-            objects[i]["grown_points"] = int(len(extra))
+        join(_grow(source, solid, grown, settled, seen, T_ego, surface, interval, c), "grown_points")
     if grown and solid is not None and c.grow_footprint_cell_m > 0:
-        for i, extra, landing, moving in _footprint(source, solid, grown, settled, T_ego, surface, interval, c):
-            flow[extra], dynamic[extra], settled[extra], instance[extra] = landing - source[extra], moving, True, i
-            motion_of[extra] = 0
-            objects[i]["footprint_points"] = int(len(extra))
+        join(_footprint(source, solid, grown, settled, T_ego, surface, interval, c), "footprint_points")
     if motions and solid is not None and c.embedded_share <= 1:
         solid_points = source[solid]
         for own, motion in motions.items():
@@ -645,12 +646,13 @@ def _footprint(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.n
     whose moving points span at most ``FOOTPRINT_MAX_EXTENT_M`` (BEV diagonal). A walker's
     legs under its flagged torso: the same footprint needs no free space of its own."""
     taken, cell = settled.copy(), c.grow_footprint_cell_m
+    solid_xy = source[solid, :2]
     for i, motion, core in grown:
         if np.hypot(*np.ptp(source[core, :2], axis=0)) > FOOTPRINT_MAX_EXTENT_M:
             continue
         cells = np.unique(np.floor(source[core, :2] / cell).astype(np.int64), axis=0)
         lo, hi = cells.min(axis=0) * cell, (cells.max(axis=0) + 1) * cell
-        near = solid[in_bounds(source[solid, :2], lo, hi)]
+        near = solid[in_bounds(solid_xy, lo, hi)]
         near = near[~taken[near]]
         if near.size == 0:
             continue

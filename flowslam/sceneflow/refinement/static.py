@@ -108,17 +108,20 @@ LINE_NEIGHBOURS = 40
 """Neighbours (at most) of the wider neighbourhood of a line-like target point."""
 
 
-def _is_plane(values: np.ndarray, c: FlowRefinementConfig) -> np.ndarray:
-    """(N,) bool: neighbourhoods (ascending covariance eigenvalues (N,3)) that are planes:
-    surface variation at most ``max_surface_variation`` and, with ``min_plane_spread``, a
-    middle eigenvalue at least that share of the largest (spread in two directions)."""
-    plane = values[:, 0] <= c.max_surface_variation * values.sum(axis=1)
-    return plane & (values[:, 1] >= c.min_plane_spread * values[:, 2]) if c.min_plane_spread > 0 else plane
+def _flat_and_spread(values: np.ndarray, c: FlowRefinementConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(flat, spread), (N,) bool each, of neighbourhoods with ascending covariance
+    eigenvalues ``values`` (N,3): surface variation at most ``max_surface_variation``; with
+    ``min_plane_spread``, a middle eigenvalue at least that share of the largest (spread in
+    two directions; all True without). A plane is both; flat but not spread is a line."""
+    flat = values[:, 0] <= c.max_surface_variation * values.sum(axis=1)
+    if c.min_plane_spread <= 0:
+        return flat, np.ones(len(values), dtype=bool)
+    return flat, values[:, 1] >= c.min_plane_spread * values[:, 2]
 
 
 def _planar_points(points: np.ndarray, c: FlowRefinementConfig, tree=None) -> tuple[np.ndarray, np.ndarray]:
     """The points (N,3, m) whose neighbourhood (``normal_radius_m``, at most 20 points) is a
-    plane (:func:`_is_plane`) and their unit normals. A neighbourhood that is flat but a
+    plane (:func:`_flat_and_spread`) and their unit normals. A neighbourhood that is flat but a
     line (one ring's stretch: ``min_plane_spread``) is asked again within ``line_radius_m``
     (at most ``LINE_NEIGHBOURS`` points; ``tree``: a cKDTree over ``points``, built here when
     None), and the point keeps that plane's normal when it is one.
@@ -131,15 +134,17 @@ def _planar_points(points: np.ndarray, c: FlowRefinementConfig, tree=None) -> tu
     never planar."""
     cov = _covariances(points, c.normal_radius_m)
     values = symmetric_eigenvalues(cov)
-    planar = _is_plane(values, c)
-    line = np.flatnonzero((values[:, 0] <= c.max_surface_variation * values.sum(axis=1)) & ~planar)
+    flat, spread = _flat_and_spread(values, c)
+    planar = flat & spread
+    line = np.flatnonzero(flat & ~spread)
     if line.size and c.line_radius_m > 0:  # one ring's stretch: ask a wider neighbourhood
         from scipy.spatial import cKDTree
 
         tree = cKDTree(points) if tree is None else tree
         wide, count = neighbourhood_covariances(tree, points, line, c.line_radius_m, LINE_NEIGHBOURS)
         wide_values = symmetric_eigenvalues(wide)
-        kept = _is_plane(wide_values, c) & (count >= 3)
+        wide_flat, wide_spread = _flat_and_spread(wide_values, c)
+        kept = wide_flat & wide_spread & (count >= 3)
         cov[line[kept]], values[line[kept]], planar[line[kept]] = wide[kept], wide_values[kept], True
     normals = smallest_eigenvectors(cov[planar], values[planar, 0])
     ok = np.isfinite(normals[:, 0])  # a zero covariance (coincident neighbours) has no normal
