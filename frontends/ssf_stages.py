@@ -378,6 +378,9 @@ class ObjectsStage:
         """(range image, own ``T_world_sensor``) of the last scans by frame index: the older
         scans' free space for :func:`~flowslam.sceneflow.refinement.visibility.slow_movers`
         (each scan's image is built once, when it is scan k)."""
+        self._surface: tuple = (None, None)
+        """(frame index, :class:`ScanSurface`) of the last scan k: scan k-1 of the next pair,
+        whose arrivals ask it."""
 
     def run(self, state: PairState) -> None:
         from flowslam.sceneflow.refinement.clusters import LocalGround, ScanSurface
@@ -402,8 +405,10 @@ class ObjectsStage:
         # free space in scan k, for the movers' test and the (opt-in) hidden-object test
         image = RangeImage(state.frame.points, evidence) if evidence.enabled or c.hidden_test else None
         if evidence.enabled:
-            movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground, image)
+            movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground, image,
+                                            *(self._prev_scan(state) if evidence.arrivals else ()))
             movers |= self._slow_movers(state, image, ground)
+        self._surface = (state.frame.index, surface)
         above = ground.above(evidence.ground_clearance_m)  # road clusters and growth
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
                                  state.refined.target_tree, movers, seen, surface, above, image)
@@ -429,6 +434,18 @@ class ObjectsStage:
         T_old_prev = geometry.inv(T_world_old) @ state.history_poses[-1]
         prev_image = self._images.get(state.prev.index, (None,))[0]
         return slow_movers(state.prev.points, T_old_prev, old_image, evidence, ground, prev_image)
+
+    def _prev_scan(self, state: PairState) -> tuple:
+        """(range image, :class:`ScanSurface` or None) of scan k-1, for the arrivals of
+        :func:`~flowslam.sceneflow.refinement.visibility.geometric_movers`: as kept from when
+        it was scan k; the image is built when not kept (a run's first pair)."""
+        from flowslam.sceneflow.refinement.visibility import RangeImage
+
+        image = self._images.get(state.prev.index, (None,))[0]
+        if image is None:
+            image = RangeImage(state.prev.points, self.options.motion_evidence)
+        index, surface = self._surface
+        return image, surface if index == state.prev.index else None
 
     def _older_scan(self, state: PairState, back: int):
         """(range image, own ``T_world_sensor``) of the scan ``back`` scans before scan k-1: from

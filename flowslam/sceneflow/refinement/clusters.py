@@ -35,6 +35,7 @@ __all__ = [
 ]
 
 _SQRT3 = float(np.sqrt(3.0))
+_NEIGHBOURS_3X3 = np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1)], dtype=np.int64)
 MAX_GRID_CELLS = 64_000_000
 """Voxel grids larger than this (bytes of a bool grid) are not built: the exact search does it all."""
 
@@ -270,6 +271,19 @@ class ScanSurface:
         p = self.points[idx]
         p = p[in_bounds(p, lo, hi)]
         return p[np.argsort(p[:, 0], kind="stable")]
+
+    def around(self, xy: np.ndarray) -> np.ndarray:
+        """Indices of the points in the BEV buckets (``bucket_m``) that hold a position of
+        ``xy`` (M,2, m) and in the 8 buckets around each: every point within ``bucket_m``
+        of one (horizontally), and some up to twice that."""
+        if len(self.points) == 0 or len(xy) == 0:
+            return np.zeros(0, dtype=np.int64)
+        starts, shape, first, order = self._bucket_index()
+        ij = np.unique(np.floor(np.asarray(xy) / self.bucket_m).astype(np.int64) - first, axis=0)
+        ij = (ij[:, None, :] + _NEIGHBOURS_3X3[None]).reshape(-1, 2)
+        ij = ij[(ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < shape[0]) & (ij[:, 1] < shape[1])]
+        buckets = np.unique(ij[:, 0] * shape[1] + ij[:, 1])
+        return np.concatenate([order[starts[b]:starts[b + 1]] for b in buckets] + [np.zeros(0, dtype=np.int64)])
 
     def _bucket_index(self):
         """Points grouped by BEV bucket: (start of each bucket id in ``order`` (+ the end),

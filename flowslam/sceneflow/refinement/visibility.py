@@ -12,7 +12,11 @@ point then lies on a surface of scan ``k``, or behind one (occluded). Two tests:
 
 :func:`geometric_movers` groups the non-ground points that are off surface into BEV
 connected components and keeps those that hold enough seen-through points: moving
-objects found by geometry alone, which the learned segmentation may have missed.
+objects found by geometry alone, which the learned segmentation may have missed. The
+seen-through test fires on what an object leaves behind, so it misses an object coming
+towards the sensor (its old place is hidden behind its new one). The reverse test finds
+it: **arrivals**, points of scan ``k`` where a range image of scan ``k-1`` saw through --
+something now stands where scan ``k-1`` saw empty space.
 :func:`slow_movers` applies the free-space test against an older scan instead of scan
 ``k``: what moves a few centimetres per scan leaves no surface in one step, but an older
 scan's free space after a few; and where the older scan saw something just in front of a
@@ -28,7 +32,14 @@ from __future__ import annotations
 import numpy as np
 from flowslam.config.ssf import MotionEvidenceConfig
 from flowslam.geometry import inv, transform_points
-from flowslam.sceneflow.refinement.clusters import LocalGround, ScanSurface, above_ground, bev_clusters, bev_extent
+from flowslam.sceneflow.refinement.clusters import (
+    LocalGround,
+    ScanSurface,
+    above_ground,
+    bev_clusters,
+    bev_extent,
+    in_bounds,
+)
 
 __all__ = ["RangeImage", "spherical", "geometric_movers", "slow_movers"]
 
@@ -116,6 +127,8 @@ def geometric_movers(
     surface: ScanSurface | None = None,
     ground: LocalGround | None = None,
     range_image: RangeImage | None = None,
+    source_image: RangeImage | None = None,
+    source_surface: ScanSurface | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(movers, seen_through): (N,) bool masks over ``source`` (module doc).
 
@@ -123,7 +136,12 @@ def geometric_movers(
     point within ``max_range_m + off_surface_m`` of the sensor, horizontally, plus the ego
     motion); ``ground``: the :class:`LocalGround` of all of ``source`` (with a cell of
     ``ground_cell_m``) to share; ``range_image``: the :class:`RangeImage` of ``target``
-    with ``config``. Each is built here when not given."""
+    with ``config``. Each is built here when not given. ``source_image``: the
+    :class:`RangeImage` of ``source`` itself; with it and ``arrivals``, the off-surface
+    clusters that scan k's arrivals confirm are movers too, and their off-surface points
+    count as seen through (:func:`_arrivals`, :func:`_arrival_clusters`;
+    ``source_surface``: a :class:`ScanSurface` of ``source`` to share, built locally when
+    not given)."""
     c = config or MotionEvidenceConfig()
     movers = np.zeros(len(source), dtype=bool)
     seen = np.zeros(len(source), dtype=bool)
@@ -138,7 +156,63 @@ def geometric_movers(
     if near.size == 0:
         return movers, seen
     seen[near] = (range_image or RangeImage(target, c)).sees_beyond(x)
-    return _compact_clusters(source, near, c, seen[near]), seen
+    movers = _compact_clusters(source, near, c, seen[near])
+    if c.arrivals and source_image is not None:
+        arrived = _arrivals(source, x, surface, T_ego, source_image, c, source_surface)
+        arrived = _arrival_clusters(source, near, arrived, c)
+        movers |= arrived
+        seen |= arrived
+    return movers, seen
+
+
+def _arrivals(source: np.ndarray, landings: np.ndarray, surface: ScanSurface, T_ego: np.ndarray,
+              source_image: RangeImage, c: MotionEvidenceConfig, source_surface: ScanSurface | None = None) -> np.ndarray:
+    """(M,3) the points of scan k (``surface``) that arrived, in frame k-1: near an
+    off-surface point's ego landing ``landings`` (frame k; :meth:`ScanSurface.around`, the
+    surface's BEV buckets) at least ``arrival_min_range_m`` - ``bucket_m`` from the
+    sensor, where scan k-1's image ``source_image`` sees beyond them both in the
+    seen-through test's window and in their own bin (margins
+    ``arrival_margin_m`` + ``arrival_relative_margin`` r), and with no point of scan k-1
+    within ``off_surface_m`` (``source_surface``: a :class:`ScanSurface` of ``source`` to
+    ask, e.g. kept from when it was scan k; else one of the points of ``source`` around
+    the arrivals). The own bin keeps a sparse sensor's gaps between rings from counting as
+    free space; the last test keeps what scan k-1 saw through glass or beside an edge, but
+    did see, from counting as arrived."""
+    far = np.hypot(landings[:, 0], landings[:, 1]) >= c.arrival_min_range_m - surface.bucket_m
+    y = transform_points(inv(T_ego), surface.points[surface.around(landings[far, :2])])
+    margins = {"margin_m": c.arrival_margin_m, "relative_margin": c.arrival_relative_margin}
+    y = y[source_image.sees_beyond(y, **margins)]
+    y = y[source_image.sees_beyond(y, own_bin=True, **margins)]
+    if len(y) == 0:
+        return y
+    pad = c.off_surface_m
+    if source_surface is None:
+        source_surface = ScanSurface(source[in_bounds(source, y.min(axis=0) - pad, y.max(axis=0) + pad)])
+    if len(source_surface) == 0:
+        return y
+    return y[~np.isfinite(source_surface.tree.query(y, distance_upper_bound=pad)[0])]
+
+
+def _arrival_clusters(source: np.ndarray, near: np.ndarray, arrived: np.ndarray, c: MotionEvidenceConfig) -> np.ndarray:
+    """(N,) bool over ``source``: the off-surface points ``near`` (indices) of the BEV
+    clusters (``cluster_cell_m``) of them and the ``arrived`` points (frame k-1) that hold
+    at least ``min_points`` of them and ``min_seen_through`` arrivals, at most
+    ``max_extent_m`` across, whose centre (of all their points) lies at least
+    ``arrival_min_range_m`` from the sensor (horizontally)."""
+    flagged = np.zeros(len(source), dtype=bool)
+    if near.size == 0 or len(arrived) == 0:
+        return flagged
+    xy = np.concatenate([source[near, :2], arrived[:, :2]])
+    labels = bev_clusters(xy, c.cluster_cell_m)
+    n = int(labels.max()) + 1
+    own, total = labels[:near.size], np.bincount(labels, minlength=n)
+    centre = np.stack([np.bincount(labels, weights=xy[:, i], minlength=n) for i in (0, 1)], axis=1) / total[:, None]
+    kept = ((np.bincount(own, minlength=n) >= c.min_points)
+            & (np.bincount(labels[near.size:], minlength=n) >= c.min_seen_through)
+            & (bev_extent(xy, labels, n) <= c.max_extent_m)
+            & (np.hypot(centre[:, 0], centre[:, 1]) >= c.arrival_min_range_m))
+    flagged[near[kept[own]]] = True
+    return flagged
 
 
 def slow_movers(
