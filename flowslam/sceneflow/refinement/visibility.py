@@ -158,7 +158,8 @@ def geometric_movers(
     seen[near] = (range_image or RangeImage(target, c)).sees_beyond(x)
     movers = _compact_clusters(source, near, c, seen[near])
     if c.arrivals and source_image is not None:
-        arrived = _arrivals(source, x, surface, T_ego, source_image, c, source_surface)
+        seeds = _compact_clusters(source, near, c)[near]  # only clusters big enough may take arrivals
+        arrived = _arrivals(source, x[seeds], surface, T_ego, source_image, c, source_surface)
         arrived = _arrival_clusters(source, near, arrived, c)
         movers |= arrived
         seen |= arrived
@@ -168,7 +169,8 @@ def geometric_movers(
 def _arrivals(source: np.ndarray, landings: np.ndarray, surface: ScanSurface, T_ego: np.ndarray,
               source_image: RangeImage, c: MotionEvidenceConfig, source_surface: ScanSurface | None = None) -> np.ndarray:
     """(M,3) the points of scan k (``surface``) that arrived, in frame k-1: near an
-    off-surface point's ego landing ``landings`` (frame k; :meth:`ScanSurface.around`, the
+    off-surface point's ego landing ``landings`` (frame k; those of the off-surface
+    clusters that are big enough to be movers; :meth:`ScanSurface.around`, the
     surface's BEV buckets) at least ``arrival_min_range_m`` - ``bucket_m`` from the
     sensor, where scan k-1's image ``source_image`` sees beyond them both in the
     seen-through test's window and in their own bin (margins
