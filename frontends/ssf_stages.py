@@ -408,7 +408,8 @@ class ObjectsStage:
             movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground, image,
                                             *(self._prev_scan(state) if evidence.arrivals else ()))
             movers |= self._slow_movers(state, image, ground)
-        self._surface = (state.frame.index, surface)
+            if evidence.arrivals:
+                self._surface = (state.frame.index, surface)
         above = ground.above(evidence.ground_clearance_m)  # road clusters and growth
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
                                  state.refined.target_tree, movers, seen, surface, above, image)
