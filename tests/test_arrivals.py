@@ -103,7 +103,7 @@ def test_the_objects_stage_makes_the_arriving_car_move_with_the_image_and_surfac
         config.objects.motion_evidence.arrivals = arrivals
         stage = ObjectsStage(config)
         stage.run(state(1))
-        assert stage._surface[0] == 1  # scan 1 as it was scan k
+        assert stage._surface[0] == (1 if arrivals else None)  # scan 1 as it was scan k, kept for the arrivals
         last = state(2)
         stage.run(last)
         return (~last.static)[worlds[1][1]].mean(), last
