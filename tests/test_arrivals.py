@@ -14,6 +14,7 @@ from flowslam import geometry
 from flowslam.config.ssf import MotionEvidenceConfig
 from flowslam.sceneflow.refinement.visibility import RangeImage, geometric_movers
 from test_slow_movers import HEIGHT, STEP, _box, _grid, _pose, _scan
+from test_slow_movers import _pair as _stage_state
 
 CAR = (4.4, 1.8, 1.5)
 
@@ -78,7 +79,6 @@ def test_the_objects_stage_makes_the_arriving_car_move_with_the_image_and_surfac
     from scipy.spatial import cKDTree
 
     from flowslam.config import SsfConfig
-    from flowslam.flow_odometry import FlowPoseEstimate
     from flowslam.frame import Frame
     from flowslam.sceneflow.refinement.static import RefinedFlow
     from frontends.ssf_stages import ObjectsStage, PairState
@@ -87,15 +87,12 @@ def test_the_objects_stage_makes_the_arriving_car_move_with_the_image_and_surfac
     frames = [Frame(index=i, timestamp=0.1 * i, points=_scan(w, _pose(i))) for i, (w, _) in enumerate(worlds)]
 
     def state(k: int) -> PairState:
-        prev, frame = frames[k - 1], frames[k]
-        s = PairState(prev, frame, [prev], [_pose(k - 1)], T_world_guess=_pose(k))
-        T_prev_curr = geometry.inv(_pose(k - 1)) @ _pose(k)
-        T_ego = geometry.inv(T_prev_curr)
-        n = len(prev.points)
-        s.estimate = FlowPoseEstimate(T_prev_curr, np.eye(6), T_ego, np.ones(n, dtype=bool), False, None)
-        s.refined = RefinedFlow(np.zeros((0, 3)), np.zeros((0, 3)), T_ego, True, frame.points,
-                                target_tree=cKDTree(frame.points))
-        s.flow, s.static = geometry.rigid_flow(T_ego, prev.points), np.ones(n, dtype=bool)
+        """The pair (k-1, k) at the true poses, its static refinement accepted, every point static."""
+        s = _stage_state(frames, [_pose(i) for i in range(3)], k, 1)
+        T_ego, points = s.estimate.T_curr_prev, s.prev.points
+        s.refined = RefinedFlow(np.zeros((0, 3)), np.zeros((0, 3)), T_ego, True, s.frame.points,
+                                target_tree=cKDTree(s.frame.points))
+        s.flow, s.static = geometry.rigid_flow(T_ego, points), np.ones(len(points), dtype=bool)
         return s
 
     def car_moves(arrivals: bool) -> tuple[float, np.ndarray]:
