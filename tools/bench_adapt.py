@@ -15,8 +15,9 @@ process:
 - ``gain``: what limits the network alone: on the held-out ``sim`` seed, the network is
   fed GT-compensated scans whose newest prior is off by a known translation (0-40 cm,
   random direction); the mean static-point flow error left shows how much of a prior
-  error the network corrects (shipped weights and ``--weights``; a diagnostic that reads
-  GT, never part of the system).
+  error the network corrects (shipped weights, ``--weights`` and each ``--also``; a
+  diagnostic that reads GT, never part of the system; ``--sequence``, ``--device`` and
+  ``--points`` run it on any simulated sequence, e.g. on a GPU machine).
 
     python tools/bench_adapt.py kitti|sim|speed|gain [--out runs/bench_adapt] [--weights W] [--set KEY=VALUE]
 
@@ -150,7 +151,8 @@ def speed(out: Path, overrides: dict, frames: int, sensor: str) -> dict:
     return {k: result[k] for k in ("best_epoch", "written_epoch", "minutes", "wall_s", "history")}
 
 
-def gain(out: Path, weights: Path | None, test_seed: int, frames: int, sensor: str) -> dict:
+def gain(out: Path, weights: list[Path], test_seed: int, frames: int, sensor: str, sequence: Path | None = None,
+         device: str = "cpu", points: int = 16384) -> dict:
     import torch
 
     from flowslam import geometry
@@ -158,13 +160,11 @@ def gain(out: Path, weights: Path | None, test_seed: int, frames: int, sensor: s
     from flowslam.sceneflow.network.samples import frames_to_sample
     from flowslam.sceneflow.network.weights import build_model, load_weights, shipped_weights
 
-    dataset = open_dataset(out / "sim" / f"dt-{sensor}-{frames}-{test_seed}")
+    dataset = open_dataset(sequence or out / "sim" / f"dt-{sensor}-{frames}-{test_seed}")
     gt = np.asarray(dataset.gt_poses)
     record = {}
-    for name, w in (("shipped", shipped_weights()), ("given", weights)):
-        if w is None:
-            continue
-        model = build_model(load_weights(w, require_hash=False))
+    for name, w in [("shipped", shipped_weights())] + [(str(w), w) for w in weights]:
+        model = build_model(load_weights(w, require_hash=False)).to(device)
         model.fold_batchnorm()
         rng = np.random.default_rng(0)
         rows = {}
@@ -177,9 +177,10 @@ def gain(out: Path, weights: Path | None, test_seed: int, frames: int, sensor: s
                 T_new_world = geometry.inv(gt[k])
                 priors = [E @ T_new_world @ gt[i] for i in indices[:-1]] + [np.eye(4)]
                 scans = [dataset[i] for i in indices]
-                sample = frames_to_sample(scans, priors, 16384)
+                sample = frames_to_sample(scans, priors, points)
                 with torch.inference_mode():
-                    res = model({"points": [[torch.from_numpy(p) for p in sample.points]]})["flow"].float().numpy()
+                    res = model({"points": [[torch.from_numpy(p).to(device) for p in sample.points]]})["flow"]
+                res = res.float().cpu().numpy()
                 flow = sample.points[-2] - sample.source_points + res
                 static = ~scans[-2].gt_dynamic[sample.source_index]
                 d = (flow - scans[-2].gt_flow[sample.source_index])[static]
@@ -200,6 +201,10 @@ def main() -> None:
     ap.add_argument("--test-seed", type=int, default=299)
     ap.add_argument("--frames", type=int, default=30, help="sim: frames per sequence; speed: 100.")
     ap.add_argument("--sensor", default="hdl64")
+    ap.add_argument("--also", type=Path, action="append", default=[], help="gain: more weights to compare.")
+    ap.add_argument("--sequence", type=Path, help="gain: this simulated sequence instead of the held-out seed's.")
+    ap.add_argument("--device", default="cpu", help="gain: torch device of the network.")
+    ap.add_argument("--points", type=int, default=16384, help="gain: points sampled per scan.")
     args = ap.parse_args()
     overrides = {k: yaml.safe_load(v) for k, v in (item.split("=", 1) for item in args.set)}
     args.out.mkdir(parents=True, exist_ok=True)
@@ -209,7 +214,9 @@ def main() -> None:
     elif args.experiment == "sim":
         record = sim(args.out, overrides, args.weights, args.train_seeds, args.test_seed, args.frames, args.sensor)
     elif args.experiment == "gain":
-        record = gain(args.out, args.weights, args.test_seed, args.frames, args.sensor)
+        weights = [w for w in (args.weights, *args.also) if w is not None]
+        record = gain(args.out, weights, args.test_seed, args.frames, args.sensor, args.sequence, args.device,
+                      args.points)
     else:
         record = speed(args.out, overrides, 100 if args.frames == 30 else args.frames, args.sensor)
     record["overrides"] = overrides
