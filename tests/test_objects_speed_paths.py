@@ -183,3 +183,54 @@ def test_fine_icp_stages_on_the_cropped_box_equal_the_whole_box(monkeypatch):
     whole = objects._register(*args)
     np.testing.assert_array_equal(cropped, whole)
     assert geometry.translation_norm(cropped @ geometry.inv(motion)) < 0.05  # and it found the motion
+
+
+def _coarse_case(isolated: bool):
+    """(car points, target box, true motion): the car of :func:`_street` moved 1.2 m and
+    turned 3 degrees; the box holds the street around its landing (``isolated``: only the
+    street farther than 3 m from it, so that ICP from far off still converges)."""
+    from flowslam import geometry
+
+    scene = _street(6)
+    car = scene[-2000:]
+    motion = geometry.from_euler("z", np.radians(3.0), t=[1.2, 0.1, 0.0])
+    moved = transform_points(motion, car)
+    street = scene[:-2000]
+    if isolated:
+        street = street[~np.isfinite(cKDTree(moved).query(street, distance_upper_bound=3.0)[0])]
+    target = np.vstack([street, moved])
+    box = target[(target[:, 0] > -8) & (target[:, 0] < 22) & (np.abs(target[:, 1]) < 10)]
+    return car, box, motion
+
+
+@pytest.mark.parametrize("start_x, isolated", [(0.9, False), (-0.3, True)])
+def test_coarse_icp_stage_on_the_cropped_box_equals_the_whole_box(monkeypatch, start_x, isolated):
+    """``objects._register``: the first ICP stage registers onto the box points within its
+    correspondence distance + ``COARSE_STAGE_SLACK_M`` of the start landing, and again onto
+    the whole box when it moved a point further than that slack. With the crop switched off
+    (infinite slack) the transform is the same: for a start 0.3 m off (the crop holds) and
+    for one 1.2 m off, where the stage on the crop alone moves the car beyond the slack."""
+    import open3d as o3d
+
+    from flowslam import geometry
+    from flowslam.config.ssf import ObjectRefinementConfig
+    from flowslam.sceneflow.refinement import objects
+
+    car, box, motion = _coarse_case(isolated)
+    c = ObjectRefinementConfig()
+    p = car[objects._icp_subset(len(car), c)]
+    start = geometry.from_euler("z", 0.0, t=[start_x, 0.0, 0.0])
+    crop = objects._near_landing(box, p, start, c.correspondence_m[0], objects.COARSE_STAGE_SLACK_M)
+    assert 0 < len(crop) < 0.6 * len(box)  # the crop leaves out much of the box
+    reg = o3d.pipelines.registration
+    on_crop = reg.registration_icp(objects._cloud(p), objects._cloud(crop), c.correspondence_m[0], start,
+                                   reg.TransformationEstimationPointToPoint(), objects._criteria(c)).transformation
+    moved = np.abs(transform_points(np.asarray(on_crop), p) - transform_points(start, p)).max()
+    assert (moved > objects.COARSE_STAGE_SLACK_M) == isolated  # which branch of _register this case takes
+    args = (p, objects._cloud(p), box, objects._cloud(box), start, c)
+    cropped = objects._register(*args)
+    monkeypatch.setattr(objects, "COARSE_STAGE_SLACK_M", np.inf)
+    whole = objects._register(*args)
+    np.testing.assert_allclose(cropped, whole, atol=1e-9)
+    if not isolated:  # from near the truth it finds the motion (from 1.5 m off it slides along the box car)
+        assert geometry.translation_norm(cropped @ geometry.inv(motion)) < 0.05

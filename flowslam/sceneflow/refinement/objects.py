@@ -94,11 +94,13 @@ def _register(p: np.ndarray, src, box: np.ndarray, tgt, T: np.ndarray, c: Object
     :func:`_cloud`) onto the target box ``box`` (``tgt``: its cloud), coarse to fine
     (``correspondence_m``); returns T.
 
-    The first stage registers onto the whole box. Each finer stage registers onto the box's
-    points within ``correspondence_m`` + ``FINE_STAGE_SLACK_M`` of the object's current
-    landing (its bounding box, :func:`_near_landing`): only those can be matched unless the
-    stage moves the object further than the slack, and Open3D builds its KD-tree over the
-    target at every call (1.3 ms for a 7k-point box; the crop holds a fraction of it).
+    Each stage registers onto the box's points near the object's current landing (its
+    bounding box, :func:`_near_landing`): only those can be matched unless the stage moves
+    the object further than the slack, and Open3D builds its KD-tree over the target at
+    every call (1.3 ms for a 7k-point box; the crop holds a fraction of it). The first
+    stage crops within ``correspondence_m`` + ``COARSE_STAGE_SLACK_M`` and registers again
+    onto the whole box when it moved some point further than that slack (as if it had never
+    cropped); each finer stage crops within ``correspondence_m`` + ``FINE_STAGE_SLACK_M``.
 
     Point-to-point, not point-to-plane: normals of a few hundred sparse ring points are
     unreliable (measured: point-to-plane diverged on several simulated objects, and as a
@@ -108,23 +110,33 @@ def _register(p: np.ndarray, src, box: np.ndarray, tgt, T: np.ndarray, c: Object
 
     reg = o3d.pipelines.registration
     criteria = _criteria(c)
+    def icp(target, max_dist, T):
+        return np.asarray(reg.registration_icp(src, target, max_dist, T, reg.TransformationEstimationPointToPoint(),
+                                               criteria).transformation).copy()
+
     for stage, max_dist in enumerate(c.correspondence_m):
-        target = tgt
-        if stage:
-            near = _near_landing(box, p, T, max_dist)
-            if len(near) == 0:  # nothing within reach: no correspondence, T stays (as onto the whole box)
-                continue
-            target = _cloud(near)
-        T = np.asarray(reg.registration_icp(src, target, max_dist, T, reg.TransformationEstimationPointToPoint(),
-                                            criteria).transformation).copy()
+        if stage == 0:
+            near = _near_landing(box, p, T, max_dist, COARSE_STAGE_SLACK_M)
+            if 0 < len(near) < len(box):
+                moved = icp(_cloud(near), max_dist, T)
+                if np.abs(transform_points(moved, p) - transform_points(T, p)).max() <= COARSE_STAGE_SLACK_M:
+                    T = moved
+                    continue
+            T = icp(tgt, max_dist, T)
+            continue
+        near = _near_landing(box, p, T, max_dist)
+        if len(near) == 0:  # nothing within reach: no correspondence, T stays (as onto the whole box)
+            continue
+        T = icp(_cloud(near), max_dist, T)
     return T
 
 
-def _near_landing(box: np.ndarray, p: np.ndarray, T: np.ndarray, max_dist: float) -> np.ndarray:
-    """The target points of ``box`` within ``max_dist`` + ``FINE_STAGE_SLACK_M`` of the
-    bounding box of ``T p``."""
+def _near_landing(box: np.ndarray, p: np.ndarray, T: np.ndarray, max_dist: float,
+                  slack: float | None = None) -> np.ndarray:
+    """The target points of ``box`` within ``max_dist`` + ``slack`` (default
+    ``FINE_STAGE_SLACK_M``) of the bounding box of ``T p``."""
     landing = transform_points(T, p)
-    reach = max_dist + FINE_STAGE_SLACK_M
+    reach = max_dist + (FINE_STAGE_SLACK_M if slack is None else slack)
     return box[in_bounds(box, landing.min(axis=0) - reach, landing.max(axis=0) + reach)]
 
 
@@ -164,6 +176,10 @@ PLANE_STAGE_MIN_TARGET = 10
 FINE_STAGE_SLACK_M = 0.5
 """How far (m) a finer ICP stage may move an object beyond its correspondence distance and
 still see every target point it could match (:func:`_register`)."""
+
+COARSE_STAGE_SLACK_M = 1.0
+"""The same for the first ICP stage, which registers again onto the whole target box when
+it moved a point further (:func:`_register`)."""
 
 
 def _cloud(points: np.ndarray):
