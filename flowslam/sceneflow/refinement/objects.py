@@ -780,13 +780,46 @@ def _mover_starts(p: np.ndarray, sub: np.ndarray, seen: np.ndarray, T_ego: np.nd
     (in frame k), for objects with enough geometric movers ``sub`` and seen-through points."""
     if not (c.hypotheses_m and sub.sum() >= c.min_points and seen.sum() >= c.min_seen_through):
         return []
-    axis = T_ego[:3, :3] @ _principal_axis(p[sub])
+    return _shifted(p[sub], T_ego, c)
+
+
+def _shifted(points: np.ndarray, T_ego: np.ndarray, c: ObjectRefinementConfig) -> list[np.ndarray]:
+    """The ego motion shifted by each of ``hypotheses_m`` along the principal BEV axis of
+    ``points`` (frame k-1), turned into frame k."""
+    axis = T_ego[:3, :3] @ _principal_axis(points)
     starts = []
     for d in c.hypotheses_m:
         shifted = T_ego.copy()
         shifted[:3, 3] += d * axis
         starts.append(shifted)
     return starts
+
+
+def _mover_parts(movers: np.ndarray, starts: list[np.ndarray], T_ego: np.ndarray, c: ObjectRefinementConfig):
+    """The geometric movers of an object (``movers``, frame k-1) as the parts its mover ICP
+    registers, each with its shifted starts: the whole set with ``starts``, or with
+    ``mover_parts`` and several ``instance_cell_m`` components of at least ``min_points``,
+    each component with starts along its own axis (two vehicles that move apart in one
+    cluster)."""
+    if c.mover_part_cell_m > 0:
+        labels = bev_clusters(movers, c.mover_part_cell_m)
+        counts = np.bincount(labels)
+        big = np.flatnonzero(counts >= c.min_points)
+        big = big[bev_extent(movers[:, :2], labels, len(counts))[big] > PERSON_MAX_EXTENT_M]
+        if len(big) > 1:
+            parts = [movers[labels == b] for b in big]
+            return [(part, _shifted(part, T_ego, c)) for part in parts]
+    return [(movers, starts)]
+
+
+def _displacement_start(p: np.ndarray, flow: np.ndarray, T_ego: np.ndarray) -> np.ndarray:
+    """ICP start of points ``p`` (frame k-1) with input ``flow``: the ego rotation and the
+    median displacement of their flow after it."""
+    R = T_ego[:3, :3]
+    T0 = np.eye(4)
+    T0[:3, :3] = R
+    T0[:3, 3] = np.median(p + flow - p @ R.T, axis=0)
+    return T0
 
 
 def _target_box(surface: ScanSurface, guess: np.ndarray, ego: np.ndarray, reach: float,
@@ -819,9 +852,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
                       result=(ego, np.zeros(len(p), dtype=bool), np.full(len(p), -1, dtype=np.int64)))
         return record
     R = T_ego[:3, :3]
-    T0 = np.eye(4)
-    T0[:3, :3] = R
-    T0[:3, 3] = np.median(p + flow - p @ R.T, axis=0)  # the network's (or carried) displacement
+    T0 = _displacement_start(p, flow, T_ego)  # the network's (or carried) displacement
     mover_starts = _mover_starts(p, sub, seen, T_ego, c)
     reach = max(abs(d) for d in c.hypotheses_m) if mover_starts else 0.0
     box = _target_box(surface, transform_points(T0, p), ego, reach, c)
@@ -839,16 +870,24 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         record["accepted"] = True
         if not _ego_explains(static_score, fitness, rmse, min(len(p), c.max_icp_points), c):
             motions.append(_polished(q, box, T, fitness, rmse, surface, T_ego, c))
-    moving_part = p[sub][_icp_subset(int(sub.sum()), c)] if mover_starts else None
-    joint_on_movers = _score(moving_part, motions[0], surface, c)[0] if mover_starts and motions else 0.0
-    # the geometric movers alone, from shifted ego landings -- only when the object's own ICP
-    # does not already explain them (no fitness, at most 1, can then beat its by static_preference)
-    if mover_starts and joint_on_movers + c.static_preference < 1.0:
-        Tm, fm, rm, _ = _best_icp(moving_part, box, tgt, surface, mover_starts + [T0], T_ego, c, prefer_first=False)
-        record.update(mover_fitness=fm, mover_rmse_m=rm)
-        if fm >= c.min_fitness and rm <= c.max_rmse_m and fm > joint_on_movers + c.static_preference:
-            record["accepted"] = True
-            motions.append(_polished(moving_part, box, Tm, fm, rm, surface, T_ego, c))
+    if mover_starts:
+        for part, starts in _mover_parts(p[sub], mover_starts, T_ego, c):
+            moving_part = part[_icp_subset(len(part), c)]
+            joint_on_movers = _score(moving_part, motions[0], surface, c)[0] if motions else 0.0
+            # the geometric movers alone, from shifted ego landings -- only when the object's own ICP
+            # does not already explain them (no fitness, at most 1, can then beat its by static_preference)
+            if joint_on_movers + c.static_preference >= 1.0:
+                continue
+            Tm, fm, rm, _ = _best_icp(moving_part, box, tgt, surface, starts + [T0], T_ego, c, prefer_first=False)
+            record.update(mover_fitness=fm, mover_rmse_m=rm)
+            if fm >= c.min_fitness and rm <= c.max_rmse_m and fm > joint_on_movers + c.static_preference:
+                record["accepted"] = True
+                motions.append(_polished(moving_part, box, Tm, fm, rm, surface, T_ego, c))
+    if motions and c.leftover_motion:
+        leftover = _leftover_motion(p, flow, ego, motions, box, tgt, surface, T_ego, c)
+        if leftover is not None:
+            motions.append(leftover)
+            record["leftover_motion"] = True
     if record["accepted"]:
         if motions:
             record["motion"] = motions[0]
@@ -858,6 +897,31 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         record["speed_mps"] = 0.0  # a moving object's: :func:`_split_instances`, from its final flow
         record["result"] = (np.where(moving[:, None], landing, ego), moving, which)
     return record
+
+
+def _leftover_motion(p: np.ndarray, flow: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], box: np.ndarray,
+                     tgt, surface: ScanSurface, T_ego: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray | None:
+    """A further rigid motion for the points of an object (``p``, frame k-1; ``flow`` their
+    input flow, ``ego`` their ego landings) that neither the ego motion nor any of its
+    ``motions`` lands on scan k's surface (within ``score_plane_m``), when they are at least
+    ``min_points`` and ``leftover_share`` of it: registered on their own from their input
+    flow's median displacement, kept when it fits (``min_fitness``, ``max_rmse_m``) and the
+    ego motion does not explain them as well. Two vehicles side by side that move apart
+    form one cluster, and one motion registers only one of them."""
+    on = _plane_distances(ego, surface, c) < c.score_plane_m
+    for M in motions:
+        on |= _plane_distances(transform_points(M, p), surface, c) < c.score_plane_m
+    left = ~on
+    if left.sum() < max(c.min_points, c.leftover_share * len(p)):
+        return None
+    r = p[left][_icp_subset(int(left.sum()), c)]
+    T0 = _displacement_start(p[left], flow[left], T_ego)
+    T, fitness, rmse, _ = _best_icp(r, box, tgt, surface, [T0], T_ego, c)
+    if fitness < c.min_fitness or rmse > c.max_rmse_m:
+        return None
+    if _ego_explains(_score(r, T_ego, surface, c), fitness, rmse, len(r), c):
+        return None
+    return _polished(r, box, T, fitness, rmse, surface, T_ego, c)
 
 
 def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, instance: np.ndarray,
@@ -1017,6 +1081,30 @@ def _on_own_surface(ego: np.ndarray, landing: np.ndarray, kept: np.ndarray, soli
     return out
 
 
+def _part_majority(p: np.ndarray, best: np.ndarray, dist: np.ndarray, solid: np.ndarray,
+                   c: ObjectRefinementConfig) -> np.ndarray:
+    """``best`` (M,), each point's motion, with each ``solid`` point (clear of the ground)
+    given the motion that most points of its ``instance_cell_m`` BEV component took among
+    those that only one motion lands on scan k's surface (``dist`` (K,M): each motion's
+    landing's distance to scan k, inf beyond ``score_distance_m`` or for a motion that lifts
+    the point), when that motion lands it near scan k's points too: a car's roof and sides fit
+    a neighbouring car's motion as well, sliding along themselves, and only its ends tell."""
+    on = dist <= c.score_plane_m
+    idx = np.flatnonzero(solid)
+    if idx.size == 0:
+        return best
+    labels = bev_clusters(p[idx], c.instance_cell_m)
+    mine = best[idx]
+    voted = on[mine, idx] & (on[:, idx].sum(axis=0) == 1)  # only one motion explains them: they tell
+    votes = np.zeros((int(labels.max()) + 1, on.shape[0]))
+    np.add.at(votes, (labels[voted], mine[voted]), 1.0)
+    major = votes.argmax(axis=1)[labels]
+    take = np.isfinite(dist[major, idx]) & (votes.sum(axis=1)[labels] > 0)
+    best = best.copy()
+    best[idx[take]] = major[take]
+    return best
+
+
 def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], surface: ScanSurface,
                     c: ObjectRefinementConfig, solid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(M,3) landing of each point of ``p`` (frame k) and (M,) the index of the motion it
@@ -1044,6 +1132,8 @@ def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], s
     no_motion = lifted.all(axis=0)  # every motion lifts the point: only its ego landing is left
     dist[lifted] = np.inf  # a motion that lifts or sinks the point (a turn of a long or merged object): not its own
     best = np.argmin(dist, axis=0)
+    if len(motions) > 1 and solid is not None and c.coherent_parts:
+        best = _part_majority(p, best, dist, solid, c)
     rows = np.arange(len(p))
     d_ego = surface.tree.query(ego, distance_upper_bound=c.score_distance_m)[0]
     nearest = dist[best, rows]
