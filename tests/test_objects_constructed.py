@@ -133,6 +133,35 @@ def test_a_partly_flagged_car_grows_to_its_whole_body(pair):
     assert len(np.unique(ids)) == 1 and ids[0] >= 0 and grown.objects[int(ids[0])]["grown_points"] > 0
 
 
+def test_the_unseen_rear_of_a_growing_car_moves_with_it(pair):
+    """The same half-flagged car, but scan k has no returns from its rear face (hidden, as
+    a car's far side is). Its motion does not put the rear face of scan k-1 on scan k's
+    surface, and neither does the ego motion (it leaves the face in free space): with
+    ``grow_unexplained`` the face moves with the rest of its rigid component, without it the
+    face stays static."""
+    from flowslam.sceneflow.refinement.visibility import geometric_movers
+
+    prev, curr, labels, T_ego = pair
+    rear_k = (np.abs(curr[:, 0] - 8.2) < 0.05) & (curr[:, 1] > -1.05) & (curr[:, 1] < 0.85) & (curr[:, 2] > 0.0)
+    curr = curr[~rear_k]  # the car is at x = 9 m in the world, the sensor at 0.8 m
+    moving = labels == 1
+    rear = moving & (prev[:, 0] < 8.05)
+    assert rear_k.sum() > 100 and rear.sum() > 100
+    flow = geometry.rigid_flow(T_ego, prev)
+    front = moving & (prev[:, 0] > 10.0)
+    flow[front] += [0.8, 0.05, 0.0]
+    _, seen = geometric_movers(prev, curr, T_ego)
+    run = lambda **o: refine_objects(prev, flow, front, curr, T_ego, DT, ObjectRefinementConfig(**o),
+                                     above_ground=prev[:, 2] > 0.1, seen_through=seen)
+    whole, explained_only = run(), run(grow_unexplained=False)
+    true_flow = geometry.transform_points(T_ego, prev[rear] + [1.0, 0.0, 0.0]) - prev[rear]
+    lifted = rear & (prev[:, 2] > 0.1)  # the face's points clear of the ground join the growth
+    assert whole.dynamic[lifted].mean() > 0.95
+    assert np.abs(whole.flow[lifted] - true_flow[lifted[rear]]).max() < 0.03
+    assert explained_only.dynamic[lifted].mean() < 0.5  # only the face's edges, which land near the sides
+    assert not whole.dynamic[labels != 1].any()
+
+
 def _walker_pair():
     """Scan k-1 and scan k (sensor frames; labels of scan k-1: 0 static, 1 walker) of a road,
     a wall and a 0.5 x 0.4 x 1.7 m walker crossing at 1.5 m/s 10 m ahead; the sensor drives

@@ -630,15 +630,17 @@ def _joins(source: np.ndarray, members: np.ndarray, taken: np.ndarray, motion: n
     ``motion``: when its motion puts at least ``min_fitness`` of them on scan k's surface
     and the ego motion puts fewer there by ``static_preference`` (else they are static
     structure beside the mover: a wall a pedestrian walks along), those its motion explains
-    and not yet ``taken``, as (points, their landings (frame k; the ego landing where not
-    moving), moving); else None."""
+    (with ``grow_unexplained``, also those neither motion puts on the surface: hidden in
+    scan k) and not yet ``taken``, as (points, their landings (frame k; the ego landing where
+    not moving), moving); else None."""
     landing = transform_points(motion, source[members])
     explained = _plane_distances(landing, surface, c) < c.score_plane_m
     if explained.mean() < c.min_fitness:
         return None
-    if _score(source[members], T_ego, surface, c)[0] >= explained.mean() - c.static_preference:
+    ego_explained = _plane_distances(transform_points(T_ego, source[members]), surface, c) < c.score_plane_m
+    if ego_explained.mean() >= explained.mean() - c.static_preference:
         return None
-    extra = explained & ~taken[members]
+    extra = (explained | (c.grow_unexplained & ~ego_explained)) & ~taken[members]
     if not extra.any():
         return None
     pts = members[extra]
