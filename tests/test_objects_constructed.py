@@ -162,6 +162,35 @@ def test_the_unseen_rear_of_a_growing_car_moves_with_it(pair):
     assert not whole.dynamic[labels != 1].any()
 
 
+def test_a_growing_car_beside_a_fence_takes_its_own_body_not_the_fence(pair):
+    """The half-flagged car drives 0.65 m beside a 20 m fence: at the growth's cell
+    (``cluster_cell_m``) car and fence form one component wider than ``grow_max_extent_m``,
+    which cannot join. Its ``instance_cell_m`` part that holds the car's flagged points can
+    (``grow_wide_margin``): the car's motion, refitted on it, puts clearly more of it on
+    scan k's surface than the ego motion does, so the rear half moves too; the fence stays
+    static. Without the parts the rear half stays static."""
+    from flowslam.sceneflow.refinement.visibility import geometric_movers
+
+    prev, curr, labels, T_ego = pair
+    fence = _grid(np.array([20.0, 0, 0]), np.array([0, 0, 1.2]), np.array([0.0, -1.65, 0.0]))
+    prev = np.vstack([prev, fence])
+    curr = np.vstack([curr, geometry.transform_points(T_ego, _grid(np.array([20.0, 0, 0]), np.array([0, 0, 1.2]),
+                                                                   np.array([0.0, -1.65, 0.0])))])
+    labels = np.concatenate([labels, np.full(len(fence), 4)])
+    moving = labels == 1
+    front = moving & (prev[:, 0] > 10.0)
+    flow = geometry.rigid_flow(T_ego, prev)
+    flow[front] += [0.8, 0.05, 0.0]
+    _, seen = geometric_movers(prev, curr, T_ego)
+    run = lambda **o: refine_objects(prev, flow, front, curr, T_ego, DT, ObjectRefinementConfig(**o),
+                                     above_ground=prev[:, 2] > 0.1, seen_through=seen)
+    parts, whole_only = run(), run(grow_wide_margin=2.0)
+    lifted = moving & (prev[:, 2] > 0.1)
+    assert parts.dynamic[lifted].mean() > 0.95
+    assert not parts.dynamic[labels == 4].any() and not parts.dynamic[labels == 0].any()
+    assert whole_only.dynamic[lifted].mean() < 0.7  # the car's component holds the fence: too wide
+
+
 def _walker_pair():
     """Scan k-1 and scan k (sensor frames; labels of scan k-1: 0 static, 1 walker) of a road,
     a wall and a 0.5 x 0.4 x 1.7 m walker crossing at 1.5 m/s 10 m ahead; the sensor drives

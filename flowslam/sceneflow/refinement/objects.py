@@ -613,23 +613,48 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
     for i, motion, core in grown:
         comps = np.unique(label_of[core])
         comps = comps[(comps >= 0)]
-        comps = comps[small[comps]]
-        for comp in comps:
-            members = solid[labels == comp]
+        groups = [(solid[labels == comp], motion) for comp in comps[small[comps]]]
+        if c.grow_wide_margin <= 1:
+            groups += [(part, None) for comp in comps[~small[comps]]
+                       for part in _parts_holding(source, solid[labels == comp], core, c)]
+        for members, own in groups:
             if seen[members].sum() < c.grow_min_seen_through:
                 continue
-            joined = _joins(source, members, taken, motion, T_ego, surface, interval, c)
+            margin = c.static_preference
+            if own is None:  # a part of a wide component: its motion refitted on it, from the object's
+                own, margin = _refit(source[members], motion, surface, c), c.grow_wide_margin
+            joined = _joins(source, members, taken, own, T_ego, surface, interval, c, margin)
             if joined is not None:
                 taken[joined[0]] = True
                 yield (i, *joined)
 
 
+def _parts_holding(source: np.ndarray, members: np.ndarray, core: np.ndarray, c: ObjectRefinementConfig) -> list:
+    """The ``instance_cell_m`` BEV components of ``members`` (indices into ``source``) that
+    hold a point of ``core`` and span at most ``grow_max_extent_m``: a vehicle's own body
+    inside a component that the coarser cell joined to the trees or walls beside it."""
+    labels = bev_clusters(source[members], c.instance_cell_m)
+    small = bev_extent(source[members, :2], labels, int(labels.max()) + 1) <= c.grow_max_extent_m
+    held = np.unique(labels[np.isin(members, core)])
+    return [members[labels == part] for part in held[small[held]]]
+
+
+def _refit(q: np.ndarray, motion: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> np.ndarray:
+    """``motion`` refined by :func:`_register` of the points ``q`` (frame k-1) onto scan k's
+    points around their landing (``margin_m``)."""
+    landing = transform_points(motion, q)
+    box = surface.in_box(landing.min(axis=0) - c.margin_m, landing.max(axis=0) + c.margin_m)
+    if len(box) < c.min_points:
+        return motion
+    return _register(q, _cloud(q), box, _cloud(box), motion, c)
+
+
 def _joins(source: np.ndarray, members: np.ndarray, taken: np.ndarray, motion: np.ndarray, T_ego: np.ndarray,
-           surface: ScanSurface, interval: float, c: ObjectRefinementConfig):
+           surface: ScanSurface, interval: float, c: ObjectRefinementConfig, margin: float | None = None):
     """The points of ``members`` (indices into ``source``) that join a moving object of
     ``motion``: when its motion puts at least ``min_fitness`` of them on scan k's surface
-    and the ego motion puts fewer there by ``static_preference`` (else they are static
-    structure beside the mover: a wall a pedestrian walks along), those its motion explains
+    and the ego motion puts fewer there by ``static_preference`` (or ``margin``; else they
+    are static structure beside the mover: a wall a pedestrian walks along), those its motion explains
     (with ``grow_unexplained``, also those neither motion puts on the surface: hidden in
     scan k) and not yet ``taken``, as (points, their landings (frame k; the ego landing where
     not moving), moving); else None."""
@@ -638,7 +663,7 @@ def _joins(source: np.ndarray, members: np.ndarray, taken: np.ndarray, motion: n
     if explained.mean() < c.min_fitness:
         return None
     ego_explained = _plane_distances(transform_points(T_ego, source[members]), surface, c) < c.score_plane_m
-    if ego_explained.mean() >= explained.mean() - c.static_preference:
+    if ego_explained.mean() >= explained.mean() - (c.static_preference if margin is None else margin):
         return None
     extra = (explained | (c.grow_unexplained & ~ego_explained)) & ~taken[members]
     if not extra.any():
