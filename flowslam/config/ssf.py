@@ -265,8 +265,9 @@ class ObjectRefinementConfig(StrictModel):
     """A cluster wider than ``split_extent_m`` is replaced by its components when their
     registrations put at least this share of its points more on scan k's surface than
     its own does."""
-    correspondence_m: list[float] = Field(default_factory=lambda: [1.0, 0.3, 0.1])
-    """Per-object ICP stages, coarse to fine: largest correspondence distance per stage."""
+    correspondence_m: list[float] = Field(default_factory=lambda: [1.0, 0.3, 0.1], min_length=1)
+    """Per-object ICP stages, coarse to fine: largest correspondence distance per stage (at
+    least one)."""
     max_iterations: int = Field(15, ge=1)
     """ICP iterations per stage."""
     prefer_first_start: bool = True

@@ -114,16 +114,13 @@ def _register(p: np.ndarray, src, box: np.ndarray, tgt, T: np.ndarray, c: Object
         return np.asarray(reg.registration_icp(src, target, max_dist, T, reg.TransformationEstimationPointToPoint(),
                                                criteria).transformation).copy()
 
-    for stage, max_dist in enumerate(c.correspondence_m):
-        if stage == 0:
-            near = _near_landing(box, p, T, max_dist, COARSE_STAGE_SLACK_M)
-            if 0 < len(near) < len(box):
-                moved = icp(_cloud(near), max_dist, T)
-                if np.abs(transform_points(moved, p) - transform_points(T, p)).max() <= COARSE_STAGE_SLACK_M:
-                    T = moved
-                    continue
-            T = icp(tgt, max_dist, T)
-            continue
+    coarse, *finer = c.correspondence_m
+    near = _near_landing(box, p, T, coarse, COARSE_STAGE_SLACK_M)
+    moved = icp(_cloud(near), coarse, T) if 0 < len(near) < len(box) else None
+    if moved is None or np.abs(transform_points(moved, p) - transform_points(T, p)).max() > COARSE_STAGE_SLACK_M:
+        moved = icp(tgt, coarse, T)  # as if it had never cropped
+    T = moved
+    for max_dist in finer:
         near = _near_landing(box, p, T, max_dist)
         if len(near) == 0:  # nothing within reach: no correspondence, T stays (as onto the whole box)
             continue
@@ -620,7 +617,7 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
         for members, own in groups:
             if seen[members].sum() < c.grow_min_seen_through:
                 continue
-            margin = c.static_preference
+            margin = None  # _joins' own: static_preference
             if own is None:  # a part of a wide component: its motion refitted on it, from the object's
                 own, margin = _refit(source[members], motion, surface, c), c.grow_wide_margin
             joined = _joins(source, members, taken, own, T_ego, surface, interval, c, margin)
@@ -824,10 +821,10 @@ def _shifted(points: np.ndarray, T_ego: np.ndarray, c: ObjectRefinementConfig) -
 
 def _mover_parts(movers: np.ndarray, starts: list[np.ndarray], T_ego: np.ndarray, c: ObjectRefinementConfig):
     """The geometric movers of an object (``movers``, frame k-1) as the parts its mover ICP
-    registers, each with its shifted starts: the whole set with ``starts``, or with
-    ``mover_parts`` and several ``instance_cell_m`` components of at least ``min_points``,
-    each component with starts along its own axis (two vehicles that move apart in one
-    cluster)."""
+    registers, each with its shifted starts: the whole set with ``starts``, or, when they
+    fall into several ``mover_part_cell_m`` BEV components of at least ``min_points`` that
+    are wider than ``PERSON_MAX_EXTENT_M``, each such component with starts along its own
+    axis (two vehicles that move apart in one cluster).""" 
     if c.mover_part_cell_m > 0:
         labels = bev_clusters(movers, c.mover_part_cell_m)
         counts = np.bincount(labels)
