@@ -267,3 +267,39 @@ def test_a_parked_car_hidden_by_a_passing_car_of_its_cluster_stays_static():
     assert not visible_only.dynamic[label == 1].any()
     assert visible_only.dynamic[label == 2].mean() > 0.8  # the passing car still moves
     assert np.array_equal(visible_only.dynamic[label == 2], all_landings.dynamic[label == 2])
+
+
+def test_network_movers_beside_the_sensor_land_on_the_full_scan_k():
+    """A parked car's side 1.75 m beside the sensor, within ``min_range_m`` (so in no
+    object), flagged dynamic by the network with a flow 6 cm off the ego motion's. Its ego
+    landings lie on scan k's surface, but the static refinement's target tree lacks every
+    scan-k point near the network's dynamic landings -- exactly there. Against the whole of
+    scan k the points are static (simulated `dt` 381: 886 false dynamic points of such a
+    car in one pair)."""
+    from scipy.spatial import cKDTree
+
+    from flowslam.config import FlowRefinementConfig
+    from flowslam.sceneflow.refinement.static import _near_any
+
+    rng = np.random.default_rng(8)
+    side = lambda x0, x1: _surface([x1 - x0, 0, 0], [0, 0, 1.0], [x0, -1.75, -1.3], 0.04, rng)  # world = frame k-1
+    ground = _surface([30, 0, 0], [0, 16, 0], [-10.0, -8.0, -HEIGHT - 0.01], 0.15, rng)
+    car = side(-0.7, 0.7)
+    prev = np.concatenate([ground, car])
+    curr = geometry.transform_points(T_EGO, np.concatenate([ground, side(-3.0, 3.0)]))
+    flagged = np.arange(len(prev)) >= len(ground)
+    assert np.hypot(car[:, 0], car[:, 1]).max() < ObjectRefinementConfig().min_range_m
+    flow = geometry.rigid_flow(T_EGO, prev)
+    flow[flagged] += [0.06, 0.0, 0.0]  # the network's guess: a slow mover
+    landings = prev[flagged] + flow[flagged]
+    refinement_target = curr[~_near_any(curr, landings, FlowRefinementConfig().dynamic_exclusion_m)]
+    target_tree = cKDTree(refinement_target)
+    ego = geometry.transform_points(T_EGO, car)
+    assert not np.isfinite(target_tree.query(ego, distance_upper_bound=0.3)[0]).any()  # the tree alone: no surface
+
+    c = ObjectRefinementConfig()
+    result = refine_objects(prev, flow, flagged.copy(), curr, T_EGO, DT, c, target_tree=target_tree,
+                            above_ground=_above(prev, c))
+    assert not result.dynamic[flagged].any()
+    assert np.allclose(result.flow[flagged], geometry.rigid_flow(T_EGO, car))
+    assert result.stats["relabelled_static"] == flagged.sum()
