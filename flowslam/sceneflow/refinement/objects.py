@@ -551,14 +551,16 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
                              range_image if c.split_visible else None, seen)
     flow[still], dynamic[still] = rigid_flow(T_ego, source[still]), False
     # the rest of the network's dynamic points: static if the ego motion lands them on a surface
-    # of scan k (every point of it: the refinement's target tree lacks the target points near
-    # the network's dynamic landings, which are where these points' ego landings lie)
+    # of scan k; those outside the candidates' range (in no object) ask every point of scan k,
+    # since the refinement's target tree lacks the target points near the network's dynamic
+    # landings, which is where a false flag's ego landings lie
     rest = np.flatnonzero(dynamic & ~settled)
     on_surface = np.zeros(0, dtype=bool)
     if rest.size:
         rigid = transform_points(T_ego, source[rest])
         on_surface = np.isfinite(target_tree.query(rigid, distance_upper_bound=c.off_surface_m)[0])
-        on_surface |= surface.near_any(rigid, c.off_surface_m)
+        outside = np.flatnonzero(~near[rest] & ~on_surface)
+        on_surface[outside] = surface.near_any(rigid[outside], c.off_surface_m)
         if range_image is not None and c.hidden_rest_free_share > 0:
             on_surface |= _hidden_rest(source[rest], rigid, flow[rest], on_surface, movers[rest] | seen[rest],
                                        range_image, c)
