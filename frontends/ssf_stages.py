@@ -385,6 +385,7 @@ class ObjectsStage:
     def run(self, state: PairState) -> None:
         from flowslam.sceneflow.refinement.clusters import LocalGround, ScanSurface
         from flowslam.sceneflow.refinement.objects import (
+            hold_tracks,
             object_target_range,
             refine_objects,
         )
@@ -413,11 +414,13 @@ class ObjectsStage:
         above = ground.above(evidence.ground_clearance_m)  # road clusters and growth
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
                                  state.refined.target_tree, movers, seen, surface, above, image)
+        held = hold_tracks(prev, objects, tracked, tracked_flow, T_ego, state.dt if state.dt > 0 else 0.1, surface,
+                           self._older_view(state) if c.hold_tracks else None, c)
         accepted = np.array([o["accepted"] for o in objects.objects] + [False])  # [-1] -> False
         state.flow, state.static = objects.flow, ~objects.dynamic
         state.instance = np.where(accepted[objects.instance], objects.instance, -1)
         self.movers.update(prev, objects.flow, objects.dynamic, T_ego, ground)
-        state.stats.update(objects.stats, tracked_candidates=int(tracked.sum()))
+        state.stats.update(objects.stats, tracked_candidates=int(tracked.sum()), tracked_held=held)
 
     def _slow_movers(self, state: PairState, image, ground) -> np.ndarray:
         """:func:`~flowslam.sceneflow.refinement.visibility.slow_movers` of scan k-1 against the
@@ -428,13 +431,20 @@ class ObjectsStage:
         evidence = self.options.motion_evidence
         self._images = {i: v for i, v in self._images.items() if i >= state.frame.index - evidence.baseline_scans - 1}
         self._images[state.frame.index] = (image, state.T_world_measured)
-        old = self._older_scan(state, evidence.baseline_scans)
-        if old is None:
+        older = self._older_view(state)
+        if older is None:
             return np.zeros(len(state.prev.points), dtype=bool)
-        old_image, T_world_old = old
-        T_old_prev = geometry.inv(T_world_old) @ state.history_poses[-1]
         prev_image = self._images.get(state.prev.index, (None,))[0]
-        return slow_movers(state.prev.points, T_old_prev, old_image, evidence, ground, prev_image)
+        return slow_movers(state.prev.points, older[1], older[0], evidence, ground, prev_image)
+
+    def _older_view(self, state: PairState):
+        """(range image, ``T_old_{k-1}``) of the scan ``baseline_scans`` before scan k-1
+        (:meth:`_older_scan`), placed with the frontend's own poses; None without one."""
+        old = self._older_scan(state, self.options.motion_evidence.baseline_scans)
+        if old is None:
+            return None
+        old_image, T_world_old = old
+        return old_image, geometry.inv(T_world_old) @ state.history_poses[-1]
 
     def _prev_scan(self, state: PairState) -> tuple:
         """(range image, :class:`ScanSurface` or None) of scan k-1, for the arrivals of

@@ -343,6 +343,22 @@ class ObjectRefinementConfig(StrictModel):
     explains join. The real AV2 pair: 3-way 0.0634 -> 0.0621, FD 0.1723 -> 0.1683,
     Dynamic IoU 0.700 -> 0.706; tuning `dt` 361 / 362, `rush-hour` 364, `static` 363 within
     0.0003 of IoU and 0.0001 m of EPE3D (stop 37)."""
+    hold_tracks: bool = True
+    """A tracked mover (the last pair's moving points, moved on with their own motion) that
+    this pair's tests leave static keeps moving with its predicted flow when, per BEV
+    component (``instance_cell_m``) of at least ``min_points`` tracked points: the
+    prediction moves it (more than ``dynamic_speed_mps``), lands at least ``min_fitness``
+    of it on scan k's surface and no less than ``static_preference`` below the ego
+    motion's share, and the scan ``motion_evidence.baseline_scans`` back (placed with the
+    frontend's own poses) saw through at least ``hold_free_share`` of its points (the
+    slow-mover test's window and margins, ``baseline_window_margin_m`` and
+    ``baseline_window_relative_margin``): something has arrived there since. One scan moves
+    a walker by about the plane tolerance, so one pair cannot tell it from a static body it
+    walks along; the older scan can (where it saw something in front instead, nothing is
+    known, and nothing is held: a fence hidden behind a parked car)."""
+    hold_free_share: float = Field(0.3, ge=0, le=1)
+    """See ``hold_tracks``. Each point's own bin instead of the window held static objects
+    of the vlp32c `dt` 362 (its own bin often looks between two rings)."""
     leftover_share: float = Field(0.15, ge=0, le=1)
     """Share of an object's points left unexplained that ``leftover_motion`` registers."""
     own_surface_m: float = Field(0.3, ge=0)

@@ -70,7 +70,7 @@ from flowslam.geometry import rigid_flow, transform_points
 from flowslam.config.ssf import ObjectRefinementConfig
 from flowslam.sceneflow.refinement.clusters import ScanSurface, bev_clusters, bev_extent, in_bounds, lowest_per_cell
 
-__all__ = ["ObjectRefinement", "refine_objects"]
+__all__ = ["ObjectRefinement", "hold_tracks", "refine_objects"]
 
 
 
@@ -487,6 +487,47 @@ def refine_objects(
             break
     result.stats.update(iterations=len(changes) + 1, round_changes=changes)
     return result
+
+
+def hold_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarray, tracked_flow: np.ndarray,
+                T_ego: np.ndarray, interval: float, surface: ScanSurface, older, c: ObjectRefinementConfig) -> int:
+    """Tracked movers that :func:`refine_objects` left static keep moving with their
+    predicted flow (``hold_tracks`` in the config: the conditions). ``source``: scan k-1
+    (frame k-1); ``result``: its refinement, updated in place (each held component becomes
+    an accepted object with ``held: True``); ``tracked`` (N,) bool and ``tracked_flow``
+    (N,3): :meth:`~flowslam.sceneflow.refinement.tracking.MoverPrior.predict`; ``T_ego`` =
+    ``T_{k,k-1}``; ``interval`` (s); ``surface``: scan k; ``older``: (range image of the
+    scan ``baseline_scans`` before scan k-1, ``T_old_{k-1}``) or None (no older scan: no
+    track is held). Returns the number of points held."""
+    if not c.hold_tracks or older is None:
+        return 0
+    stale = np.flatnonzero(np.asarray(tracked, bool) & ~result.dynamic)
+    if stale.size < c.min_points:
+        return 0
+    image, T_old = older
+    ev = c.motion_evidence
+    labels = bev_clusters(source[stale], c.instance_cell_m)
+    counts = np.bincount(labels)
+    held = 0
+    for label in np.flatnonzero(counts >= c.min_points):
+        idx = stale[labels == label]
+        p = source[idx]
+        ego, landing = transform_points(T_ego, p), p + tracked_flow[idx]
+        speed = float(np.linalg.norm(landing - ego, axis=1).mean()) / interval
+        if speed <= c.dynamic_speed_mps:
+            continue
+        fitness = _fit(_plane_distances(landing, surface, c), c)[0]
+        if fitness < c.min_fitness or fitness < _fit(_plane_distances(ego, surface, c), c)[0] - c.static_preference:
+            continue
+        free = image.sees_beyond(transform_points(T_old, p), margin_m=ev.baseline_window_margin_m,
+                                 relative_margin=ev.baseline_window_relative_margin)
+        if free.mean() < c.hold_free_share:
+            continue
+        result.flow[idx], result.dynamic[idx], result.instance[idx] = landing - p, True, len(result.objects)
+        result.objects.append({"points": int(len(idx)), "accepted": True, "held": True, "fitness": fitness,
+                               "speed_mps": speed})
+        held += len(idx)
+    return held
 
 
 def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, source: np.ndarray, T_ego: np.ndarray,
