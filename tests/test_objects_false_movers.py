@@ -51,9 +51,13 @@ def test_an_arc_of_a_ground_ring_is_road_not_a_mover():
     assert default.objects == [] and default.stats["road_clusters"] == 1
     assert np.allclose(default.flow[arc], geometry.rigid_flow(T_EGO, scan[arc]))
 
-    without = _refine(scan, scan, arc, min_above_ground_points=0)  # the old behaviour
+    without = _refine(scan, scan, arc, min_above_ground_points=0, min_discriminating_share=0.0)  # the old behaviour
     assert len(without.objects) == 1 and without.objects[0]["static_fitness"] == 0.0
     assert without.dynamic[arc].all()  # the arc "moves"
+    # without the road test alone, the slide along the ring is still refused: every normal
+    # of the flat ground is across the motion, so scan k cannot tell it from the ego motion
+    slid = _refine(scan, scan, arc, min_above_ground_points=0)
+    assert not slid.dynamic.any() and slid.objects[0]["unobservable_motions"] >= 1
 
 
 def _hood() -> np.ndarray:
@@ -71,7 +75,7 @@ def test_returns_of_the_ego_vehicle_body_are_not_objects():
     assert default.objects == [] and np.all(default.instance == -1)
 
     # (no ground is seen under the bonnet, so the road test would catch it too: off here)
-    without = _refine(scan, scan, body, min_range_m=0.0, min_above_ground_points=0)
+    without = _refine(scan, scan, body, min_range_m=0.0, min_above_ground_points=0, min_discriminating_share=0.0)
     moving = [o for o in without.objects if o.get("speed_mps", 0.0) > 0.5]
     assert len(moving) == 1 and abs(moving[0]["speed_mps"] - 8.0) < 0.1  # it moves with the sensor
 
@@ -303,3 +307,27 @@ def test_network_movers_beside_the_sensor_land_on_the_full_scan_k():
     assert not result.dynamic[flagged].any()
     assert np.allclose(result.flow[flagged], geometry.rigid_flow(T_EGO, car))
     assert result.stats["relabelled_static"] == flagged.sum()
+
+
+def test_a_slide_along_a_fence_is_unobservable_and_a_car_driving_forward_is_not():
+    """``min_discriminating_share``: scan k can tell a motion from the ego motion only where
+    its surfaces face along the motion. A fence section slid 1.5 m along the fence lands on
+    the fence as well as it stood (every normal across the motion); a box driving 1.5 m
+    forward shows its back and front faces along the motion."""
+    from flowslam.sceneflow.refinement.clusters import ScanSurface
+    from flowslam.sceneflow.refinement.objects import _observable
+
+    rng = np.random.default_rng(11)
+    c = ObjectRefinementConfig()
+    slide = geometry.from_euler("z", 0.0, t=[1.5, 0.0, 0.0]) @ T_EGO  # 1.5 m along x after the ego motion
+    fence = _surface([20, 0, 0], [0, 0, 1.2], [0.0, -6.0, -HEIGHT], 0.05, rng)  # along x, facing y
+    section = fence[(fence[:, 0] > 8.0) & (fence[:, 0] < 11.0)]
+    fence_k = ScanSurface(geometry.transform_points(T_EGO, fence))
+    assert not _observable(section, slide, T_EGO, fence_k, c)
+    assert _observable(section, slide, T_EGO, fence_k, c.model_copy(update={"min_discriminating_share": 0.0}))
+
+    box = np.concatenate([_surface([0, 1.8, 0], [0, 0, 1.4], [10.0, -6.0, -HEIGHT], 0.05, rng),   # back
+                          _surface([4.5, 0, 0], [0, 0, 1.4], [10.0, -6.0, -HEIGHT], 0.05, rng),   # side
+                          _surface([0, 1.8, 0], [0, 0, 1.4], [14.5, -6.0, -HEIGHT], 0.05, rng)])  # front
+    box_k = ScanSurface(geometry.transform_points(slide, box))
+    assert _observable(box, slide, T_EGO, box_k, c)

@@ -343,6 +343,15 @@ class ObjectRefinementConfig(StrictModel):
     explains join. The real AV2 pair: 3-way 0.0634 -> 0.0621, FD 0.1723 -> 0.1683,
     Dynamic IoU 0.700 -> 0.706; tuning `dt` 361 / 362, `rush-hour` 364, `static` 363 within
     0.0003 of IoU and 0.0001 m of EPE3D (stop 37)."""
+    min_discriminating_share: float = Field(0.05, ge=0, le=1)
+    """An object without seen-through points keeps a motion of its own only when at least this
+    share of its landings (of those with a normal) lie on scan-k surfaces that face along the
+    motion (normal within 60 degrees of its departure from the ego landings); 0: off. A wall
+    or fence slid along itself fits anywhere along the slide, and its fit says nothing (the
+    KITTI double wall, simulated fences). Walkers are left out (objects at most
+    ``FOOTPRINT_MAX_EXTENT_M`` across moving at most ``WALKER_MAX_SPEED_MPS``): a walker
+    beside a fence forms one small object with it, whose motion the fence's normals cannot
+    judge."""
     hold_tracks: bool = True
     """A tracked mover (the last pair's moving points, moved on with their own motion) that
     this pair's tests leave static keeps moving with its predicted flow when, per BEV

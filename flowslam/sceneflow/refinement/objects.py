@@ -958,6 +958,14 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         if leftover is not None:
             motions.append(leftover)
             record["leftover_motion"] = True
+    if motions and c.min_discriminating_share > 0 and np.count_nonzero(seen) < c.min_seen_through:
+        walker = np.hypot(*np.ptp(p[:, :2], axis=0)) <= FOOTPRINT_MAX_EXTENT_M
+        walking = WALKER_MAX_SPEED_MPS * interval
+        kept = [M for M in motions if (walker and np.linalg.norm(_mean_departure(p, M, T_ego)) <= walking)
+                or _observable(p, M, T_ego, surface, c)]
+        if len(kept) < len(motions):
+            record["unobservable_motions"] = len(motions) - len(kept)
+        motions = kept
     if record["accepted"]:
         if motions:
             record["motion"] = motions[0]
@@ -967,6 +975,47 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         record["speed_mps"] = 0.0  # a moving object's: :func:`_split_instances`, from its final flow
         record["result"] = (np.where(moving[:, None], landing, ego), moving, which)
     return record
+
+
+DISCRIMINATING_COS = 0.5
+"""A landing discriminates a motion from the ego motion when its surface normal in scan k
+lies within 60 degrees of the motion's direction (|cos| at least this)."""
+
+
+WALKER_MAX_SPEED_MPS = 3.0
+"""A walker-sized object (``FOOTPRINT_MAX_EXTENT_M``) moving at most this fast (m/s) keeps its
+motion without :func:`_observable`: a walker beside a fence forms one small object with it,
+whose motion the fence's normals cannot judge; faster, it is no walker."""
+
+
+def _mean_departure(p: np.ndarray, T: np.ndarray, T_ego: np.ndarray) -> np.ndarray:
+    """(3,) mean departure (m, frame k) of the landings ``T p`` from the ego landings."""
+    return (transform_points(T, p) - transform_points(T_ego, p)).mean(axis=0)
+
+
+def _observable(p: np.ndarray, T: np.ndarray, T_ego: np.ndarray, surface: ScanSurface,
+                c: ObjectRefinementConfig) -> bool:
+    """Whether scan k can tell the motion ``T`` of an object's points ``p`` (frame k-1) from
+    the ego motion: at least ``min_discriminating_share`` of its landings ``T p`` lie at a
+    scan-k point (within ``score_distance_m``) whose surface normal is within 60 degrees of
+    the motion's mean departure from the ego landings (``DISCRIMINATING_COS``). A wall or a
+    fence slid along itself fits scan k anywhere along the slide: every normal there is
+    across the motion, and the slide's fit says nothing (the KITTI double wall; simulated
+    fences). A car moving forward shows its front or back."""
+    landing = transform_points(T, p)
+    direction = _mean_departure(p, T, T_ego)
+    length = float(np.linalg.norm(direction))
+    if length == 0.0:
+        return False
+    dist, j = surface.tree.query(landing, distance_upper_bound=c.score_distance_m)
+    ok = np.flatnonzero(np.isfinite(dist))
+    if ok.size == 0:
+        return False
+    cos = np.abs(surface.normals(j[ok], c.normal_radius_m) @ (direction / length))
+    known = np.isfinite(cos)  # a landing at a line (a sparse ring) has no normal: it tells nothing
+    if np.count_nonzero(known) < c.min_points:
+        return True
+    return np.count_nonzero(cos[known] >= DISCRIMINATING_COS) >= c.min_discriminating_share * np.count_nonzero(known)
 
 
 def _leftover_motion(p: np.ndarray, flow: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], box: np.ndarray,
