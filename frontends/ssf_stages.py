@@ -414,7 +414,7 @@ class ObjectsStage:
         above = ground.above(evidence.ground_clearance_m)  # road clusters and growth
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
                                  state.refined.target_tree, movers, seen, surface, above, image)
-        held = hold_tracks(prev, objects, tracked, tracked_flow, T_ego, state.dt if state.dt > 0 else 0.1, surface,
+        held = hold_tracks(prev, objects, tracked, tracked_flow, T_ego, state.dt, surface,
                            self._older_view(state) if c.hold_tracks else None, c)
         accepted = np.array([o["accepted"] for o in objects.objects] + [False])  # [-1] -> False
         state.flow, state.static = objects.flow, ~objects.dynamic

@@ -423,6 +423,12 @@ def _principal_axis(points: np.ndarray) -> np.ndarray:
 
 
 
+def scan_interval(dt: float | None) -> float:
+    """The scan interval (s) the objects' speeds use: ``dt``, or 0.1 s (a 10 Hz sensor) when
+    it is missing or not positive."""
+    return dt if dt and dt > 0 else 0.1
+
+
 def refine_objects(
     source: np.ndarray,
     flow: np.ndarray,
@@ -471,7 +477,7 @@ def refine_objects(
         surface = ScanSurface(target, object_target_range(c))
     movers = np.zeros(len(source), dtype=bool) if movers is None else np.asarray(movers, dtype=bool)
     seen = np.zeros(len(source), dtype=bool) if seen_through is None else np.asarray(seen_through, dtype=bool)
-    interval = dt if dt and dt > 0 else 0.1
+    interval = scan_interval(dt)
     scene = (source, T_ego, interval, target_tree, seen, surface, above_ground, range_image, c)
     result = _refine_round(np.array(flow, dtype=np.float64), np.array(dynamic, dtype=bool), movers, *scene)
     changes = []
@@ -490,15 +496,16 @@ def refine_objects(
 
 
 def hold_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarray, tracked_flow: np.ndarray,
-                T_ego: np.ndarray, interval: float, surface: ScanSurface, older, c: ObjectRefinementConfig) -> int:
+                T_ego: np.ndarray, dt: float, surface: ScanSurface, older, c: ObjectRefinementConfig) -> int:
     """Tracked movers that :func:`refine_objects` left static keep moving with their
     predicted flow (``hold_tracks`` in the config: the conditions). ``source``: scan k-1
     (frame k-1); ``result``: its refinement, updated in place (each held component becomes
     an accepted object with ``held: True``); ``tracked`` (N,) bool and ``tracked_flow``
     (N,3): :meth:`~flowslam.sceneflow.refinement.tracking.MoverPrior.predict`; ``T_ego`` =
-    ``T_{k,k-1}``; ``interval`` (s); ``surface``: scan k; ``older``: (range image of the
-    scan ``baseline_scans`` before scan k-1, ``T_old_{k-1}``) or None (no older scan: no
-    track is held). Returns the number of points held."""
+    ``T_{k,k-1}``; ``dt``: the scan interval (s, :func:`scan_interval`); ``surface``: scan
+    k; ``older``: (range image of the scan ``baseline_scans`` before scan k-1,
+    ``T_old_{k-1}``) or None (no older scan: no track is held). Returns the number of
+    points held."""
     if not c.hold_tracks or older is None:
         return 0
     stale = np.flatnonzero(np.asarray(tracked, bool) & ~result.dynamic)
@@ -506,6 +513,7 @@ def hold_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarra
         return 0
     image, T_old = older
     ev = c.motion_evidence
+    interval = scan_interval(dt)
     labels = bev_clusters(source[stale], c.instance_cell_m)
     counts = np.bincount(labels)
     held = 0
