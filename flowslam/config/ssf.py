@@ -344,8 +344,9 @@ class ObjectRefinementConfig(StrictModel):
     Dynamic IoU 0.700 -> 0.706; tuning `dt` 361 / 362, `rush-hour` 364, `static` 363 within
     0.0003 of IoU and 0.0001 m of EPE3D (stop 37)."""
     min_discriminating_share: float = Field(0.05, ge=0, le=1)
-    """An object without seen-through points keeps a motion of its own only when at least this
-    share of its landings (of those with a normal) lie on scan-k surfaces that face along the
+    """An object without free-space evidence (fewer seen-through points than ``min_seen_through``
+    or 2 % of its points, ``SEEN_EVIDENCE_SHARE``) keeps a motion of its own only when at least
+    this share of its landings (of those with a normal) lie on scan-k surfaces that face along the
     motion (normal within 60 degrees of its departure from the ego landings); 0: off. A wall
     or fence slid along itself fits anywhere along the slide, and its fit says nothing (the
     KITTI double wall, simulated fences). Walkers are left out (objects at most

@@ -966,7 +966,8 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         if leftover is not None:
             motions.append(leftover)
             record["leftover_motion"] = True
-    if motions and c.min_discriminating_share > 0 and np.count_nonzero(seen) < c.min_seen_through:
+    if motions and c.min_discriminating_share > 0 and np.count_nonzero(seen) < max(c.min_seen_through,
+                                                                                SEEN_EVIDENCE_SHARE * len(p)):
         walker = np.hypot(*np.ptp(p[:, :2], axis=0)) <= FOOTPRINT_MAX_EXTENT_M
         walking = WALKER_MAX_SPEED_MPS * interval
         kept = [M for M in motions if (walker and np.linalg.norm(_mean_departure(p, M, T_ego)) <= walking)
@@ -983,6 +984,12 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         record["speed_mps"] = 0.0  # a moving object's: :func:`_split_instances`, from its final flow
         record["result"] = (np.where(moving[:, None], landing, ego), moving, which)
     return record
+
+
+SEEN_EVIDENCE_SHARE = 0.02
+"""An object has free-space evidence of motion (:func:`_observable` does not apply) when at
+least this share of its points (and ``min_seen_through``) are seen through: a few such
+points of a long wall are its edges, not a trail."""
 
 
 DISCRIMINATING_COS = 0.5
