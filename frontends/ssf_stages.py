@@ -406,36 +406,42 @@ class ObjectsStage:
         # free space in scan k, for the movers' test and the (opt-in) hidden-object test
         image = RangeImage(state.frame.points, evidence) if evidence.enabled or c.hidden_test else None
         if evidence.enabled:
+            self._keep_image(state, image)
+        # the scan baseline_scans before scan k-1: for the slow movers and the held tracks
+        older = self._older_view(state) if evidence.enabled or c.hold_tracks else None
+        if evidence.enabled:
             movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground, image,
                                             *(self._prev_scan(state) if evidence.arrivals else ()))
-            movers |= self._slow_movers(state, image, ground)
+            movers |= self._slow_movers(state, ground, older)
             if evidence.arrivals:
                 self._surface = (state.frame.index, surface)
         above = ground.above(evidence.ground_clearance_m)  # road clusters and growth
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
                                  state.refined.target_tree, movers, seen, surface, above, image)
-        held = hold_tracks(prev, objects, tracked, tracked_flow, T_ego, state.dt, surface,
-                           self._older_view(state) if c.hold_tracks else None, c)
+        held = hold_tracks(prev, objects, tracked, tracked_flow, T_ego, state.dt, surface, older, c)
         accepted = np.array([o["accepted"] for o in objects.objects] + [False])  # [-1] -> False
         state.flow, state.static = objects.flow, ~objects.dynamic
         state.instance = np.where(accepted[objects.instance], objects.instance, -1)
         self.movers.update(prev, objects.flow, objects.dynamic, T_ego, ground)
         state.stats.update(objects.stats, tracked_candidates=int(tracked.sum()), tracked_held=held)
 
-    def _slow_movers(self, state: PairState, image, ground) -> np.ndarray:
-        """:func:`~flowslam.sceneflow.refinement.visibility.slow_movers` of scan k-1 against the
-        scan ``baseline_scans`` before it (:meth:`_older_scan`), placed with the frontend's
-        own poses; ``image``: scan k's range image, kept with scan k's own pose for later pairs."""
+    def _keep_image(self, state: PairState, image) -> None:
+        """Keep scan k's range ``image`` with scan k's own pose for later pairs (their older
+        scans), dropping those no later pair reaches back to."""
+        back = self.options.motion_evidence.baseline_scans
+        self._images = {i: v for i, v in self._images.items() if i >= state.frame.index - back - 1}
+        self._images[state.frame.index] = (image, state.T_world_measured)
+
+    def _slow_movers(self, state: PairState, ground, older) -> np.ndarray:
+        """:func:`~flowslam.sceneflow.refinement.visibility.slow_movers` of scan k-1 against
+        ``older``, the scan ``baseline_scans`` before it (:meth:`_older_view`: placed with the
+        frontend's own poses; None without one)."""
         from flowslam.sceneflow.refinement.visibility import slow_movers
 
-        evidence = self.options.motion_evidence
-        self._images = {i: v for i, v in self._images.items() if i >= state.frame.index - evidence.baseline_scans - 1}
-        self._images[state.frame.index] = (image, state.T_world_measured)
-        older = self._older_view(state)
         if older is None:
             return np.zeros(len(state.prev.points), dtype=bool)
         prev_image = self._images.get(state.prev.index, (None,))[0]
-        return slow_movers(state.prev.points, older[1], older[0], evidence, ground, prev_image)
+        return slow_movers(state.prev.points, older[1], older[0], self.options.motion_evidence, ground, prev_image)
 
     def _older_view(self, state: PairState):
         """(range image, ``T_old_{k-1}``) of the scan ``baseline_scans`` before scan k-1

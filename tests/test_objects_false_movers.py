@@ -323,11 +323,16 @@ def test_a_slide_along_a_fence_is_unobservable_and_a_car_driving_forward_is_not(
     fence = _surface([20, 0, 0], [0, 0, 1.2], [0.0, -6.0, -HEIGHT], 0.05, rng)  # along x, facing y
     section = fence[(fence[:, 0] > 8.0) & (fence[:, 0] < 11.0)]
     fence_k = ScanSurface(geometry.transform_points(T_EGO, fence))
-    assert not _observable(section, slide, T_EGO, fence_k, c)
-    assert _observable(section, slide, T_EGO, fence_k, c.model_copy(update={"min_discriminating_share": 0.0}))
+
+    def observable(points, surface, config):  # as _refine_object asks: the motion's landings and mean departure
+        landing = geometry.transform_points(slide, points)
+        return _observable(landing, (landing - geometry.transform_points(T_EGO, points)).mean(axis=0), surface, config)
+
+    assert not observable(section, fence_k, c)
+    assert observable(section, fence_k, c.model_copy(update={"min_discriminating_share": 0.0}))
 
     box = np.concatenate([_surface([0, 1.8, 0], [0, 0, 1.4], [10.0, -6.0, -HEIGHT], 0.05, rng),   # back
                           _surface([4.5, 0, 0], [0, 0, 1.4], [10.0, -6.0, -HEIGHT], 0.05, rng),   # side
                           _surface([0, 1.8, 0], [0, 0, 1.4], [14.5, -6.0, -HEIGHT], 0.05, rng)])  # front
     box_k = ScanSurface(geometry.transform_points(slide, box))
-    assert _observable(box, slide, T_EGO, box_k, c)
+    assert observable(box, box_k, c)

@@ -94,6 +94,13 @@ def _pair(frames: list, poses: list, k: int, window: int):
     return state
 
 
+def _stage_slow_movers(stage, state, image) -> np.ndarray:
+    """The slow movers as ``ObjectsStage.run`` finds them: scan k's range ``image`` kept, the
+    older scan looked up once, the test against it (no shared ground)."""
+    stage._keep_image(state, image)
+    return stage._slow_movers(state, None, stage._older_view(state))
+
+
 def test_the_objects_stage_tests_the_scan_baseline_scans_older_in_its_window():
     """``ObjectsStage`` takes the older scan from the network's window and places it with the
     frontend's own poses; ``baseline_scans: 0`` turns the test off, and a window shorter than
@@ -110,7 +117,7 @@ def test_the_objects_stage_tests_the_scan_baseline_scans_older_in_its_window():
         config.objects.motion_evidence.baseline_scans = baseline
         stage = ObjectsStage(config)
         image = RangeImage(frames[4].points, config.objects.motion_evidence)
-        return stage._slow_movers(_pair(frames, poses, 4, window), image, None)
+        return _stage_slow_movers(stage, _pair(frames, poses, 4, window), image)
 
     assert flagged(3, 4)[walker].mean() > 0.5  # against scan k-4: 45 cm of free space
     assert not flagged(0, 4).any()
@@ -136,7 +143,7 @@ def test_the_objects_stage_reaches_beyond_the_window_with_the_images_and_poses_i
         stage = ObjectsStage(config)
         for k in range(1, 11):
             image = RangeImage(frames[k].points, config.objects.motion_evidence)
-            out = stage._slow_movers(_pair(frames, poses, k, min(k, 4)), image, None)
+            out = _stage_slow_movers(stage, _pair(frames, poses, k, min(k, 4)), image)
         assert len(stage._images) <= baseline + 2  # only what the baseline needs is kept
         return out
 

@@ -968,10 +968,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
             record["leftover_motion"] = True
     if motions and c.min_discriminating_share > 0 and np.count_nonzero(seen) < max(c.min_seen_through,
                                                                                 SEEN_EVIDENCE_SHARE * len(p)):
-        walker = np.hypot(*np.ptp(p[:, :2], axis=0)) <= FOOTPRINT_MAX_EXTENT_M
-        walking = WALKER_MAX_SPEED_MPS * interval
-        kept = [M for M in motions if (walker and np.linalg.norm(_mean_departure(p, M, T_ego)) <= walking)
-                or _observable(p, M, T_ego, surface, c)]
+        kept = _observable_motions(p, ego, motions, interval, surface, c)
         if len(kept) < len(motions):
             record["unobservable_motions"] = len(motions) - len(kept)
         motions = kept
@@ -1003,30 +1000,39 @@ motion without :func:`_observable`: a walker beside a fence forms one small obje
 whose motion the fence's normals cannot judge; faster, it is no walker."""
 
 
-def _mean_departure(p: np.ndarray, T: np.ndarray, T_ego: np.ndarray) -> np.ndarray:
-    """(3,) mean departure (m, frame k) of the landings ``T p`` from the ego landings."""
-    return (transform_points(T, p) - transform_points(T_ego, p)).mean(axis=0)
+def _observable_motions(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], interval: float,
+                        surface: ScanSurface, c: ObjectRefinementConfig) -> list[np.ndarray]:
+    """The ``motions`` of an object (points ``p``, frame k-1; ``ego`` their ego landings)
+    that scan k can tell from the ego motion (:func:`_observable`), and those of a
+    walker-sized object (``FOOTPRINT_MAX_EXTENT_M``) at most ``WALKER_MAX_SPEED_MPS`` fast
+    (``interval``: the scan interval, s)."""
+    walker = np.hypot(*np.ptp(p[:, :2], axis=0)) <= FOOTPRINT_MAX_EXTENT_M
+    kept = []
+    for M in motions:
+        landing = transform_points(M, p)
+        departure = (landing - ego).mean(axis=0)  # m per scan, frame k
+        walking = walker and np.linalg.norm(departure) <= WALKER_MAX_SPEED_MPS * interval
+        if walking or _observable(landing, departure, surface, c):
+            kept.append(M)
+    return kept
 
 
-def _observable(p: np.ndarray, T: np.ndarray, T_ego: np.ndarray, surface: ScanSurface,
-                c: ObjectRefinementConfig) -> bool:
-    """Whether scan k can tell the motion ``T`` of an object's points ``p`` (frame k-1) from
-    the ego motion: at least ``min_discriminating_share`` of its landings ``T p`` lie at a
-    scan-k point (within ``score_distance_m``) whose surface normal is within 60 degrees of
-    the motion's mean departure from the ego landings (``DISCRIMINATING_COS``). A wall or a
-    fence slid along itself fits scan k anywhere along the slide: every normal there is
-    across the motion, and the slide's fit says nothing (the KITTI double wall; simulated
-    fences). A car moving forward shows its front or back."""
-    landing = transform_points(T, p)
-    direction = _mean_departure(p, T, T_ego)
-    length = float(np.linalg.norm(direction))
+def _observable(landing: np.ndarray, departure: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> bool:
+    """Whether scan k can tell a motion of an object from the ego motion, given the motion's
+    ``landing`` of its points ((M,3), frame k) and their mean ``departure`` (3,) from the ego
+    landings (m): at least ``min_discriminating_share`` of the landings lie at a scan-k point
+    (within ``score_distance_m``) whose surface normal is within 60 degrees of the departure
+    (``DISCRIMINATING_COS``). A wall or a fence slid along itself fits scan k anywhere along
+    the slide: every normal there is across the motion, and the slide's fit says nothing
+    (the KITTI double wall; simulated fences). A car moving forward shows its front or back."""
+    length = float(np.linalg.norm(departure))
     if length == 0.0:
         return False
     dist, j = surface.tree.query(landing, distance_upper_bound=c.score_distance_m)
     ok = np.flatnonzero(np.isfinite(dist))
     if ok.size == 0:
         return False
-    cos = np.abs(surface.normals(j[ok], c.normal_radius_m) @ (direction / length))
+    cos = np.abs(surface.normals(j[ok], c.normal_radius_m) @ (departure / length))
     known = np.isfinite(cos)  # a landing at a line (a sparse ring) has no normal: it tells nothing
     if np.count_nonzero(known) < c.min_points:
         return True
