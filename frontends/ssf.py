@@ -16,6 +16,8 @@ Per scan ``k`` (k >= 1) a chain of stages runs on the pair (k-1, k)
 3. ``refine`` (``ssf.refine.enabled``, on by default): the static flow is refined against
    the geometry of scan ``k`` by flow-guided point-to-plane ICP; static points are
    snapped onto scan k's surface.
+   With objects on, ``scan_index`` then builds what the objects stage asks of the two
+   scans (scan k's surface index and range image, scan k-1's local ground).
 4. ``flow_to_pose``: ``FlowToPose`` (``flow_odometry:``) registers the snapped static
    pairs (or, without an accepted refinement, the network's static flow) into the
    odometry measurement ``T_prev_curr`` and its covariance.
@@ -36,7 +38,7 @@ Per scan ``k`` (k >= 1) a chain of stages runs on the pair (k-1, k)
 
 Two threads (``ssf.lookahead``, on by default): the run loop reads one scan ahead and
 hands it over (``upcoming``); as soon as scan k's pose is measured (after ``recovery``),
-stages 1-3 of pair (k, k+1) start in a background thread, while the objects stage of
+stages 1-3 of pair (k, k+1) (with ``scan_index``) start in a background thread, while the objects stage of
 pair (k-1, k), the backend, mapping and loop closing run in the caller's. Those stages
 read only the scans and the frontend's own poses up to k, the same inputs as in one
 thread, so the outputs are the same; ``process`` then takes their result

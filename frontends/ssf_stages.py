@@ -8,6 +8,7 @@ found) and has its own options section (``flowslam.config.ssf``) and its own ent
 ``network``       learned flow + dynamic probability of every point of scan k-1
 ``pose_start``    ``FlowToPose`` on the network's static flow -> ``T_start`` (ICP start)
 ``refine``        static refinement against scan k -> snapped static pairs
+``scan_index``    scan k's surface index and range image, scan k-1's local ground
 ``flow_to_pose``  the odometry measurement ``T_prev_curr`` + covariance
 ``recovery``      motion-fault check; a faulty step re-initialised globally and re-run
 ``objects``       candidates -> objects -> per-point flow, dynamic label, instance
@@ -62,6 +63,9 @@ class PairState:
     """Snapped static pairs, when the refinement ran."""
     estimate: FlowPoseEstimate | None = None
     """The odometry measurement of the pair."""
+    scan_index: ScanIndex | None = None
+    """Scan k's surface index and range image and scan k-1's local ground, for the objects
+    stage (``scan_index``)."""
     stats: dict = field(default_factory=dict)
 
     @property
@@ -357,6 +361,53 @@ def restore_motion_models(saved: list) -> None:
         model.restore(snapshot)
 
 
+@dataclass
+class ScanIndex:
+    """What the objects stage asks of the pair's scans, built from the scans alone:
+    ``surface``, the :class:`~flowslam.sceneflow.refinement.clusters.ScanSurface` of scan k
+    (its KD-tree and BEV buckets built); ``image``, scan k's
+    :class:`~flowslam.sceneflow.refinement.visibility.RangeImage` (None when neither the
+    geometric movers nor the hidden-object test use one); ``ground``, the
+    :class:`~flowslam.sceneflow.refinement.clusters.LocalGround` of scan k-1."""
+
+    surface: object
+    image: object
+    ground: object
+
+    @classmethod
+    def build(cls, state: PairState, config: SsfConfig) -> ScanIndex:
+        from flowslam.sceneflow.refinement.clusters import LocalGround, ScanSurface
+        from flowslam.sceneflow.refinement.objects import object_target_range
+        from flowslam.sceneflow.refinement.visibility import RangeImage
+
+        c = config.objects
+        evidence = c.motion_evidence
+        # one index of scan k for both users: the movers' test reaches max_range_m + off_surface_m
+        # (+ the ego motion), the objects' boxes object_target_range
+        surface = ScanSurface(state.frame.points, max(object_target_range(c), evidence.max_range_m + 5.0))
+        surface.prepare()
+        # free space in scan k, for the movers' test and the (opt-in) hidden-object test
+        image = RangeImage(state.frame.points, evidence) if evidence.enabled or c.hidden_test else None
+        return cls(surface, image, LocalGround(state.prev.points, evidence.ground_cell_m))
+
+
+class ScanIndexStage:
+    """The objects stage's :class:`ScanIndex` of the pair. It reads only the two scans, so
+    with ``ssf.lookahead`` it runs in the background thread with the stages before
+    flow-to-pose, while the caller's thread finishes the pair before (stop 39: that thread
+    sets the rate, the background one waited for it); skipped when the static refinement
+    was rejected (no objects stage then)."""
+
+    name = "scan_index"
+
+    def __init__(self, config: SsfConfig):
+        self.config = config
+
+    def run(self, state: PairState) -> None:
+        if state.refinement_accepted:
+            state.scan_index = ScanIndex.build(state, self.config)
+
+
 class ObjectsStage:
     """Moving objects against scan k: candidates (network dynamic, tracked movers, geometric
     movers, slow movers against an older scan) -> per-object ICP -> flow,
@@ -372,6 +423,7 @@ class ObjectsStage:
     def __init__(self, config: SsfConfig):
         from flowslam.sceneflow.refinement.tracking import MoverPrior
 
+        self.config = config
         self.options = config.objects
         self.movers = MoverPrior(self.options.track_radius_m)
         self._images: dict[int, tuple] = {}
@@ -383,28 +435,19 @@ class ObjectsStage:
         whose arrivals ask it."""
 
     def run(self, state: PairState) -> None:
-        from flowslam.sceneflow.refinement.clusters import LocalGround, ScanSurface
-        from flowslam.sceneflow.refinement.objects import (
-            hold_tracks,
-            object_target_range,
-            refine_objects,
-        )
-        from flowslam.sceneflow.refinement.visibility import RangeImage, geometric_movers
+        from flowslam.sceneflow.refinement.objects import hold_tracks, refine_objects
+        from flowslam.sceneflow.refinement.visibility import geometric_movers
 
         if not state.refinement_accepted:
             return
         c, prev, T_ego = self.options, state.prev.points, state.estimate.T_curr_prev
         evidence = c.motion_evidence
-        # one index of scan k for both users: the movers' test reaches max_range_m + off_surface_m
-        # (+ the ego motion), the objects' boxes object_target_range
-        surface = ScanSurface(state.frame.points, max(object_target_range(c), evidence.max_range_m + 5.0))
-        ground = LocalGround(prev, evidence.ground_cell_m)
+        index = state.scan_index or ScanIndex.build(state, self.config)  # built ahead (scan_index) or here
+        surface, image, ground = index.surface, index.image, index.ground
         tracked, tracked_flow = self.movers.predict(prev, T_ego)
         flow = np.where(tracked[:, None], tracked_flow, state.flow)  # last pair's movers, moved on
         dynamic = ~state.static | tracked
         movers = seen = None
-        # free space in scan k, for the movers' test and the (opt-in) hidden-object test
-        image = RangeImage(state.frame.points, evidence) if evidence.enabled or c.hidden_test else None
         if evidence.enabled:
             self._keep_image(state, image)
         # the scan baseline_scans before scan k-1: for the slow movers and the held tracks
@@ -501,12 +544,15 @@ class RigidStaticFlowStage:
 
 def build_stages(config: SsfConfig, flow_odometry: FlowOdometryConfig) -> list[Stage]:
     """The stage chain for ``config`` (module doc): the network always; ``pose_start`` and
-    ``refine`` when ``refine.enabled``; ``flow_to_pose``; then, when ``refine.enabled``,
+    ``refine`` when ``refine.enabled`` (and ``scan_index`` with ``objects.enabled``);
+    ``flow_to_pose``; then, when ``refine.enabled``,
     ``recovery`` (which re-runs the stages before it on a faulty step) and ``objects`` (or
     ``static_flow`` with ``objects.enabled: false``)."""
     stages: list[Stage] = [NetworkStage(config)]
     if config.refine.enabled:
         stages += [PoseStartStage(config, flow_odometry), StaticRefinementStage(config)]
+        if config.objects.enabled:
+            stages.append(ScanIndexStage(config))
     flow_to_pose = FlowToPoseStage(flow_odometry)
     stages.append(flow_to_pose)
     if config.refine.enabled:

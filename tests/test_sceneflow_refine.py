@@ -178,8 +178,9 @@ def test_ssf_frontend_modes_give_consistent_outputs(sim_pair, options):
     stages = set(out.stats["stage_ms"])
     if options.get("refine", {}).get("enabled", True):
         assert out.stats["refine_accepted"]
+        objects = options.get("objects", {}).get("enabled", True)
         assert stages == {"network", "pose_start", "refine", "flow_to_pose", "recovery",
-                          "objects" if options.get("objects", {}).get("enabled", True) else "static_flow"}
+                          *(("scan_index", "objects") if objects else ("static_flow",))}
         T = geometry.inv(out.T_prev_curr)  # T_{k,k-1}
         static = out.static_mask
         rigid = geometry.transform_points(T, src.points[static]) - src.points[static]

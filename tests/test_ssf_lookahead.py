@@ -51,7 +51,7 @@ def test_full_chain_with_lookahead_equals_the_sequential_run(kitti_extract):
     assert all(_ran_ahead(ahead))
     for a, b in zip(seq_out[1:], ahead_out[1:]):
         assert np.mean(a.static_mask == b.static_mask) > 0.9999
-        assert set(b.stats["stage_ms"]) >= {"network", "refine", "objects"}
+        assert set(b.stats["stage_ms"]) >= {"network", "refine", "scan_index", "objects"}
 
 
 def test_an_error_of_a_stage_run_ahead_stops_the_run_at_its_own_scan(kitti_extract):

@@ -214,6 +214,11 @@ class ScanSurface:
     def __len__(self) -> int:
         return len(self.points)
 
+    def prepare(self) -> None:
+        """Build the KD-tree and the BEV bucket index now (else on first use)."""
+        self.tree
+        self._bucket_index()
+
     @property
     def tree(self):
         """``scipy.spatial.cKDTree`` over the points (unbalanced: built ~3x faster, queried as fast)."""
