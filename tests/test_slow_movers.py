@@ -250,3 +250,27 @@ def test_a_walker_walking_towards_the_sensor_is_within_the_old_relative_margin_b
     front = walker & (prev[:, 0] < 24.81) & (prev[:, 2] > -HEIGHT + 0.35)
     assert not flagged["old"].any()
     assert flagged["new"][front].mean() > 0.9 and not flagged["new"][~walker].any()
+
+
+def test_a_far_walker_walking_away_is_within_the_vacated_window_margins_only():
+    """A walker 24 m ahead of a standing sensor walks 0.7 m away over the baseline: the older
+    scan saw its old body 0.7 m in front of where it is now. The seen-through test's margins
+    (0.3 m + 2 % of 24 m = 0.78 m) call that nothing in front, so the vacated test (stop 34)
+    misses it; with ``baseline_vacated_window_from_m`` (10 m) it uses the windowed test's
+    margins there (0.3 + 0.5 % = 0.42 m) and flags the walker. The wall behind it, the post
+    beside it and the ground stay unflagged either way, and so does the same walker 7 m
+    ahead, where the wider margins stay (0.3 m + 2 % of 7 m = 0.44 m > its 0.4 m walk)."""
+    def flagged(near: float, step: float, window_from):
+        old, _ = _walker_on_axis(near - step, wall_x=near + 5.0, post_x=near, ground_to=near + 6.0)
+        prev, walker = _walker_on_axis(near, wall_x=near + 5.0, post_x=near, ground_to=near + 6.0)
+        c = MotionEvidenceConfig(baseline_vacated_window_from_m=window_from)
+        return slow_movers(prev, np.eye(4), RangeImage(old, c), c, source_image=RangeImage(prev, c)), walker
+
+    before, walker = flagged(24.0, 0.7, None)
+    after, _ = flagged(24.0, 0.7, 10.0)
+    assert not before[walker].any() and not before[~walker].any()
+    assert after[walker].mean() > 0.5 and not after[~walker].any()
+    near, walker = flagged(7.0, 0.4, 10.0)
+    assert not near.any()
+    everywhere, _ = flagged(7.0, 0.4, 0.0)  # the window's margins there too would flag it
+    assert everywhere[walker].mean() > 0.5

@@ -94,24 +94,28 @@ class RangeImage:
             return r, nearest, np.isfinite(nearest), inside
         return r, self.window_min[ie, ia], self.window_known[ie, ia], inside
 
-    def in_front(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def in_front(self, points: np.ndarray, margin_m: float | np.ndarray | None = None,
+                 relative_margin: float | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """((N,) bool: in the window around each point's direction some bin has a return
-        clearly nearer than the point -- something of this scan stands in front of where the
-        point is, which may hide it; (N,3) where that nearest return stands: on the point's
-        own ray at its range, m)."""
+        clearly nearer than the point, by ``margin_m`` + ``relative_margin`` r (the config's
+        margins unless given; scalars or (N,)) -- something of this scan stands in front of
+        where the point is, which may hide it; (N,3) where that nearest return stands: on
+        the point's own ray at its range, m)."""
         points = np.asarray(points, dtype=np.float64)
         c = self.config
+        margin = c.margin_m if margin_m is None else margin_m
+        relative = c.relative_margin if relative_margin is None else relative_margin
         r, nearest, _, inside = self._lookup(points)
-        front = inside & (nearest < r - c.margin_m - c.relative_margin * r)
+        front = inside & (nearest < r - margin - relative * r)
         where = points * (np.where(front, nearest, r) / np.maximum(r, 1e-9))[:, None]
         return front, where
 
-    def sees_beyond(self, points: np.ndarray, own_bin: bool = False, margin_m: float | None = None,
-                    relative_margin: float | None = None) -> np.ndarray:
+    def sees_beyond(self, points: np.ndarray, own_bin: bool = False, margin_m: float | np.ndarray | None = None,
+                    relative_margin: float | np.ndarray | None = None) -> np.ndarray:
         """(N,) bool: in the window around each point's direction (sensor frame of this scan)
         -- or in its own bin, with ``own_bin`` -- at least one bin has a return and every
         return lies clearly beyond the point: farther than r + ``margin_m`` +
-        ``relative_margin`` r (the config's margins unless given)."""
+        ``relative_margin`` r (the config's margins unless given; scalars or (N,))."""
         c = self.config
         margin = c.margin_m if margin_m is None else margin_m
         relative = c.relative_margin if relative_margin is None else relative_margin
@@ -255,13 +259,32 @@ def slow_movers(
         free = old_image.sees_beyond(x, margin_m=c.baseline_window_margin_m,
                                      relative_margin=c.baseline_window_relative_margin)
     if c.baseline_vacated and source_image is not None:
-        front, where = old_image.in_front(x)
+        margin, relative = _vacated_margins(x, c)
+        front, where = old_image.in_front(x, margin, relative)
         # only just behind what left: farther behind is what its leaving revealed
         front &= np.linalg.norm(x - where, axis=1) <= c.baseline_vacated_max_m
         ask = np.flatnonzero(front & ~free)
         if ask.size:
-            free[ask] = source_image.sees_beyond(transform_points(inv(T_old_source), where[ask]))
+            free[ask] = source_image.sees_beyond(transform_points(inv(T_old_source), where[ask]),
+                                                 margin_m=_pick(margin, ask), relative_margin=_pick(relative, ask))
     return _compact_clusters(source, near[free], c)
+
+
+def _vacated_margins(x: np.ndarray, c: MotionEvidenceConfig) -> tuple:
+    """(margin (m), relative margin) of the vacated test for the points ``x`` (the older
+    scan's frame): the seen-through test's (None: the config's), or per point (N,) the
+    windowed test's beyond ``baseline_vacated_window_from_m``."""
+    if c.baseline_vacated_window_from_m is None:
+        return None, None
+    far = np.linalg.norm(x, axis=1) >= c.baseline_vacated_window_from_m
+    window_margin = c.margin_m if c.baseline_window_margin_m is None else c.baseline_window_margin_m
+    window_relative = c.relative_margin if c.baseline_window_relative_margin is None else c.baseline_window_relative_margin
+    return np.where(far, window_margin, c.margin_m), np.where(far, window_relative, c.relative_margin)
+
+
+def _pick(margin, idx: np.ndarray):
+    """``margin`` (None, a scalar or per point) at the points ``idx``."""
+    return margin[idx] if isinstance(margin, np.ndarray) else margin
 
 
 def _tested(source: np.ndarray, c: MotionEvidenceConfig, ground: LocalGround | None) -> np.ndarray:
