@@ -38,7 +38,8 @@ Per scan ``k`` (k >= 1) a chain of stages runs on the pair (k-1, k)
 
 Two threads (``ssf.lookahead``, on by default): the run loop reads one scan ahead and
 hands it over (``upcoming``); as soon as scan k's pose is measured (after ``recovery``),
-stages 1-3 of pair (k, k+1) (with ``scan_index``) start in a background thread, while the objects stage of
+stages 1-3 of pair (k, k+1) (and ``scan_index``, unless the caller's thread claims it
+first when it comes to wait for them) start in a background thread, while the objects stage of
 pair (k-1, k), the backend, mapping and loop closing run in the caller's. Those stages
 read only the scans and the frontend's own poses up to k, the same inputs as in one
 thread, so the outputs are the same; ``process`` then takes their result
@@ -52,6 +53,7 @@ the motion-fault check (counted in run.json's ``fallbacks`` entry).
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import deque
 
@@ -121,9 +123,15 @@ class SsfFrontend:
         first, waited = 0, {}
         ahead, self._ahead = self._ahead, None
         if ahead is not None and ahead.serves(state):
+            built = {}  # what the caller's thread builds for the objects stage while it would wait
+            for stage in self._ahead_stages:
+                ms = stage.claim(ahead.state) if hasattr(stage, "claim") else None
+                if ms is not None:
+                    built[stage.name] = ms
             start = time.perf_counter()
             state, laps = ahead.result()  # raises what those stages raised
             waited = {"ahead_wait_ms": 1e3 * (time.perf_counter() - start)}
+            laps.update(built)
             first = len(self._ahead_stages)
         elif ahead is not None:
             ahead.discard()  # another pair: as if it never ran
@@ -158,6 +166,7 @@ class SsfFrontend:
 
                 self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ssf-ahead")
             state = self._pair_state(upcoming)
+            state.scan_index_claim = threading.Lock()
             saved = snapshot_motion_models(self._ahead_stages)
             self._ahead = _StagesAhead(state, self._executor.submit(_run_timed, self._ahead_stages, state), saved)
 

@@ -23,6 +23,8 @@ the points of scan k-1, Argoverse 2 convention (``p + flow`` in sensor frame k, 
 from __future__ import annotations
 
 import dataclasses
+import threading
+import time
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -66,6 +68,9 @@ class PairState:
     scan_index: ScanIndex | None = None
     """Scan k's surface index and range image and scan k-1's local ground, for the objects
     stage (``scan_index``)."""
+    scan_index_claim: threading.Lock | None = None
+    """Run ahead in the background (``ssf.lookahead``): whichever thread acquires it first
+    builds ``scan_index`` (:class:`ScanIndexStage`); None: the caller runs every stage."""
     stats: dict = field(default_factory=dict)
 
     @property
@@ -392,11 +397,15 @@ class ScanIndex:
 
 
 class ScanIndexStage:
-    """The objects stage's :class:`ScanIndex` of the pair. It reads only the two scans, so
-    with ``ssf.lookahead`` it runs in the background thread with the stages before
-    flow-to-pose, while the caller's thread finishes the pair before (stop 39: that thread
-    sets the rate, the background one waited for it); skipped when the static refinement
-    was rejected (no objects stage then)."""
+    """The objects stage's :class:`ScanIndex` of the pair (skipped when the static
+    refinement was rejected: no objects stage then). It reads only the two scans, so with
+    ``ssf.lookahead`` either thread may build it: the background thread after the static
+    refinement, or the caller's thread (:meth:`claim`) when it comes to wait for the
+    background before that; whichever gets there first (``PairState.scan_index_claim``).
+    So it fills the thread that has time to spare: on real KITTI scans the caller's
+    thread (objects, backend, map) sets the rate and the background one builds the index;
+    on the simulated demo the network and refinement set it and the caller builds it while
+    they run. The index is the same wherever it is built."""
 
     name = "scan_index"
 
@@ -404,8 +413,22 @@ class ScanIndexStage:
         self.config = config
 
     def run(self, state: PairState) -> None:
-        if state.refinement_accepted:
+        if state.refinement_accepted and _claimed(state):
             state.scan_index = ScanIndex.build(state, self.config)
+
+    def claim(self, state: PairState) -> float | None:
+        """The caller's turn, before it waits for the stages run ahead on ``state``: build the
+        index unless the background thread has claimed it; the ms it took, or None."""
+        if state.scan_index_claim is None or not _claimed(state):
+            return None
+        start = time.perf_counter()
+        state.scan_index = ScanIndex.build(state, self.config)
+        return 1e3 * (time.perf_counter() - start)
+
+
+def _claimed(state: PairState) -> bool:
+    """Whether this thread may build ``state``'s scan index (the first to ask)."""
+    return state.scan_index_claim is None or state.scan_index_claim.acquire(blocking=False)
 
 
 class ObjectsStage:

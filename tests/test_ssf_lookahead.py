@@ -3,6 +3,8 @@ thread while pair (k-1, k) finishes (objects, backend). Real KITTI scans, real t
 Open3D / GTSAM, through the run loop (``flowslam.pipeline.drive``, which reads one scan
 ahead and hands it to the frontend's ``upcoming``)."""
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -103,3 +105,42 @@ def test_a_recording_frontend_keeps_the_two_threads(kitti_extract):
     plain, _ = _run(kitti_extract, {"refine": {"enabled": False}}, lookahead=True)
     for k in range(1, 4):
         assert np.array_equal(recorder.records[k].T_prev_curr, plain.odometry[k - 1])
+
+
+def test_the_scan_index_is_built_once_by_whichever_thread_claims_it_first(kitti_extract):
+    """``scan_index`` reads only the two scans: with the lookahead, the background thread
+    builds it after the refinement unless the caller's thread, coming to wait, claimed it
+    first (``ScanIndexStage.claim``); either way once, and the same index; without a claim
+    lock (one thread) the stage always builds it."""
+    from flowslam.config import SsfConfig
+    from flowslam.frontends.ssf_stages import PairState, ScanIndexStage
+    from flowslam.sceneflow.refinement.static import RefinedFlow
+
+    ds = open_dataset(kitti_extract)
+    prev, frame = ds[0], ds[1]
+    stage = ScanIndexStage(SsfConfig())
+    empty = np.zeros((0, 3))
+
+    def state(lock):
+        s = PairState(prev, frame, [prev], [np.eye(4)], np.eye(4), scan_index_claim=lock)
+        s.refined = RefinedFlow(empty, empty, np.eye(4), True, empty)
+        return s
+
+    caller_first = state(threading.Lock())
+    assert stage.claim(caller_first) is not None and caller_first.scan_index is not None
+    built = caller_first.scan_index
+    stage.run(caller_first)  # the background thread comes later: nothing to do
+    assert caller_first.scan_index is built
+
+    background_first = state(threading.Lock())
+    stage.run(background_first)
+    assert background_first.scan_index is not None
+    assert stage.claim(background_first) is None  # the caller just waits
+
+    one_thread = state(None)
+    assert stage.claim(one_thread) is None and one_thread.scan_index is None
+    stage.run(one_thread)
+    a, b = one_thread.scan_index, background_first.scan_index
+    assert np.array_equal(a.surface.points, b.surface.points)
+    assert np.array_equal(a.image.window_min, b.image.window_min)
+    assert np.array_equal(a.ground.lowest, b.ground.lowest)
