@@ -69,6 +69,7 @@ import numpy as np
 from flowslam.geometry import rigid_flow, transform_points
 from flowslam.config.ssf import ObjectRefinementConfig
 from flowslam.sceneflow.refinement.clusters import ScanSurface, bev_clusters, bev_extent, in_bounds, lowest_per_cell
+from flowslam.sceneflow.refinement.visibility import baseline_window_margins
 
 __all__ = ["ObjectRefinement", "hold_tracks", "refine_objects"]
 
@@ -283,12 +284,20 @@ def _plane_distances(x: np.ndarray, surface: ScanSurface, c: ObjectRefinementCon
     """(M,) distance (m) of each point ``x`` (frame k) to the tangent plane of its nearest
     scan-k point when that is within ``score_distance_m``; inf beyond, NaN without a normal."""
     plane = np.full(len(x), np.inf)
+    ok, j, normals = _nearest_normals(x, surface, c)
+    if ok.size:
+        plane[ok] = np.abs(np.einsum("ij,ij->i", x[ok] - surface.points[j], normals))
+    return plane
+
+
+def _nearest_normals(x: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> tuple:
+    """(indices of the points ``x`` (frame k) with a scan-k point within ``score_distance_m``,
+    that point's index in ``surface``, its tangent-plane normal (NaN: none)) for those."""
     dist, j = surface.tree.query(x, distance_upper_bound=c.score_distance_m)
     ok = np.flatnonzero(np.isfinite(dist))
-    if ok.size:
-        normals = surface.normals(j[ok], c.normal_radius_m)
-        plane[ok] = np.abs(np.einsum("ij,ij->i", x[ok] - surface.points[j[ok]], normals))
-    return plane
+    if ok.size == 0:
+        return ok, ok, np.zeros((0, 3))
+    return ok, j[ok], surface.normals(j[ok], c.normal_radius_m)
 
 
 def _fit(plane: np.ndarray, c: ObjectRefinementConfig) -> tuple[float, float]:
@@ -512,7 +521,6 @@ def hold_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarra
     if stale.size < c.min_points:
         return 0
     image, T_old = older
-    ev = c.motion_evidence
     interval = scan_interval(dt)
     labels = bev_clusters(source[stale], c.instance_cell_m)
     counts = np.bincount(labels)
@@ -527,8 +535,8 @@ def hold_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarra
         fitness = _fit(_plane_distances(landing, surface, c), c)[0]
         if fitness < c.min_fitness or fitness < _fit(_plane_distances(ego, surface, c), c)[0] - c.static_preference:
             continue
-        free = image.sees_beyond(transform_points(T_old, p), margin_m=ev.baseline_window_margin_m,
-                                 relative_margin=ev.baseline_window_relative_margin)
+        margin, relative = baseline_window_margins(c.motion_evidence)
+        free = image.sees_beyond(transform_points(T_old, p), margin_m=margin, relative_margin=relative)
         if free.mean() < c.hold_free_share:
             continue
         result.flow[idx], result.dynamic[idx], result.instance[idx] = landing - p, True, len(result.objects)
@@ -1028,11 +1036,10 @@ def _observable(landing: np.ndarray, departure: np.ndarray, surface: ScanSurface
     length = float(np.linalg.norm(departure))
     if length == 0.0:
         return False
-    dist, j = surface.tree.query(landing, distance_upper_bound=c.score_distance_m)
-    ok = np.flatnonzero(np.isfinite(dist))
+    ok, _, normals = _nearest_normals(landing, surface, c)
     if ok.size == 0:
         return False
-    cos = np.abs(surface.normals(j[ok], c.normal_radius_m) @ (departure / length))
+    cos = np.abs(normals @ (departure / length))
     known = np.isfinite(cos)  # a landing at a line (a sparse ring) has no normal: it tells nothing
     if np.count_nonzero(known) < c.min_points:
         return True

@@ -41,7 +41,7 @@ from flowslam.sceneflow.refinement.clusters import (
     in_bounds,
 )
 
-__all__ = ["RangeImage", "spherical", "geometric_movers", "slow_movers"]
+__all__ = ["RangeImage", "baseline_window_margins", "spherical", "geometric_movers", "slow_movers"]
 
 
 
@@ -94,6 +94,12 @@ class RangeImage:
             return r, nearest, np.isfinite(nearest), inside
         return r, self.window_min[ie, ia], self.window_known[ie, ia], inside
 
+    def _margins(self, margin_m, relative_margin) -> tuple:
+        """(margin (m), relative margin): the given ones, the config's where None."""
+        c = self.config
+        return (c.margin_m if margin_m is None else margin_m,
+                c.relative_margin if relative_margin is None else relative_margin)
+
     def in_front(self, points: np.ndarray, margin_m: float | np.ndarray | None = None,
                  relative_margin: float | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """((N,) bool: in the window around each point's direction some bin has a return
@@ -102,9 +108,7 @@ class RangeImage:
         where the point is, which may hide it; (N,3) where that nearest return stands: on
         the point's own ray at its range, m)."""
         points = np.asarray(points, dtype=np.float64)
-        c = self.config
-        margin = c.margin_m if margin_m is None else margin_m
-        relative = c.relative_margin if relative_margin is None else relative_margin
+        margin, relative = self._margins(margin_m, relative_margin)
         r, nearest, _, inside = self._lookup(points)
         front = inside & (nearest < r - margin - relative * r)
         where = points * (np.where(front, nearest, r) / np.maximum(r, 1e-9))[:, None]
@@ -116,9 +120,7 @@ class RangeImage:
         -- or in its own bin, with ``own_bin`` -- at least one bin has a return and every
         return lies clearly beyond the point: farther than r + ``margin_m`` +
         ``relative_margin`` r (the config's margins unless given; scalars or (N,))."""
-        c = self.config
-        margin = c.margin_m if margin_m is None else margin_m
-        relative = c.relative_margin if relative_margin is None else relative_margin
+        margin, relative = self._margins(margin_m, relative_margin)
         r, nearest, known, inside = self._lookup(points, own_bin)
         return inside & known & (nearest > r + margin + relative * r)
 
@@ -256,8 +258,8 @@ def slow_movers(
         free = old_image.sees_beyond(x, own_bin=True, margin_m=c.baseline_margin_m,
                                      relative_margin=c.baseline_relative_margin)
     else:
-        free = old_image.sees_beyond(x, margin_m=c.baseline_window_margin_m,
-                                     relative_margin=c.baseline_window_relative_margin)
+        margin, relative = baseline_window_margins(c)
+        free = old_image.sees_beyond(x, margin_m=margin, relative_margin=relative)
     if c.baseline_vacated and source_image is not None:
         margin, relative = _vacated_margins(x, c)
         front, where = old_image.in_front(x, margin, relative)
@@ -270,6 +272,14 @@ def slow_movers(
     return _compact_clusters(source, near[free], c)
 
 
+def baseline_window_margins(c: MotionEvidenceConfig) -> tuple[float, float]:
+    """(margin (m), relative margin) of the windowed free-space test against an older scan
+    (slow movers, held tracks): ``baseline_window_margin_m`` and
+    ``baseline_window_relative_margin``, the seen-through test's where None."""
+    return (c.margin_m if c.baseline_window_margin_m is None else c.baseline_window_margin_m,
+            c.relative_margin if c.baseline_window_relative_margin is None else c.baseline_window_relative_margin)
+
+
 def _vacated_margins(x: np.ndarray, c: MotionEvidenceConfig) -> tuple:
     """(margin (m), relative margin) of the vacated test for the points ``x`` (the older
     scan's frame): the seen-through test's (None: the config's), or per point (N,) the
@@ -277,8 +287,7 @@ def _vacated_margins(x: np.ndarray, c: MotionEvidenceConfig) -> tuple:
     if c.baseline_vacated_window_from_m is None:
         return None, None
     far = np.linalg.norm(x, axis=1) >= c.baseline_vacated_window_from_m
-    window_margin = c.margin_m if c.baseline_window_margin_m is None else c.baseline_window_margin_m
-    window_relative = c.relative_margin if c.baseline_window_relative_margin is None else c.baseline_window_relative_margin
+    window_margin, window_relative = baseline_window_margins(c)
     return np.where(far, window_margin, c.margin_m), np.where(far, window_relative, c.relative_margin)
 
 
