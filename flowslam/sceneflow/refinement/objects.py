@@ -266,6 +266,16 @@ def _planar(T: np.ndarray, p: np.ndarray, T_ego: np.ndarray) -> np.ndarray:
     return D @ T_ego
 
 
+def _moving(landing: np.ndarray, ego: np.ndarray, interval: float, c: ObjectRefinementConfig) -> np.ndarray:
+    """(M,) bool: the landings (M,3, frame k) depart from the ego landings ``ego`` by more
+    than ``dynamic_speed_mps`` over ``interval`` s: horizontally with
+    ``horizontal_departure``, else in 3D."""
+    departure = landing - ego
+    if c.horizontal_departure:
+        departure = departure[:, :2]
+    return np.linalg.norm(departure, axis=1) > c.dynamic_speed_mps * interval
+
+
 def _lifts_centroid(T: np.ndarray, centroid: np.ndarray, T_ego: np.ndarray, c: ObjectRefinementConfig) -> bool:
     """Whether the motion ``T`` moves an object's ``centroid`` (frame k-1) up or down from its
     ``T_ego`` landing (:func:`_lifted`)."""
@@ -729,7 +739,7 @@ def _joins(source: np.ndarray, members: np.ndarray, taken: np.ndarray, motion: n
         return None
     pts = members[extra]
     ego = transform_points(T_ego, source[pts])
-    moving = np.linalg.norm(landing[extra] - ego, axis=1) > c.dynamic_speed_mps * interval
+    moving = _moving(landing[extra], ego, interval, c)
     return pts, np.where(moving[:, None], landing[extra], ego), moving  # static: the ego landing
 
 
@@ -984,8 +994,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         if motions:
             record["motion"] = motions[0]
         landing, which = _choose_landing(p, ego, motions, surface, c, solid)
-        departure = np.linalg.norm(landing - ego, axis=1)
-        moving = departure > c.dynamic_speed_mps * interval
+        moving = _moving(landing, ego, interval, c)
         record["speed_mps"] = 0.0  # a moving object's: :func:`_split_instances`, from its final flow
         record["result"] = (np.where(moving[:, None], landing, ego), moving, which)
     return record
