@@ -23,8 +23,8 @@ object's points about as well (fitness within ``static_preference``, RMSE within
 ``static_rmse_ratio``; the fitness margin is at least ``static_preference_sigmas`` standard
 errors of a share of the object's points) or well enough (``static_fitness_accept``:
 structures that ICP can slide along) -- and are labelled dynamic when that motion
-moves their points faster than ``dynamic_speed_mps`` relative to the ego-motion flow,
-static otherwise. Objects holding geometric movers also start ICP from the ego landing
+moves their points faster than ``dynamic_speed_mps`` relative to the ego-motion flow
+(horizontally, ``horizontal_departure``: objects move on the ground), static otherwise. Objects holding geometric movers also start ICP from the ego landing
 shifted along their axis (``hypotheses_m``), and their movers get an ICP of their own
 (a mover merged with static false positives keeps its own motion); each point then
 takes the candidate motion that puts it nearest to scan ``k``'s surface, the ego motion
