@@ -547,8 +547,8 @@ class ObjectRefinementConfig(StrictModel):
     (sensor frame k, z up) exceeds ``dynamic_speed_mps`` x the scan interval, instead of its
     3D departure: objects move on the ground, and the ICP of a sparse cluster (vegetation,
     a trunk, a pole) slides it a few centimetres up or down. Stop 40: real KITTI 0-15
-    ``moving_objects.csv`` 51 -> 46 rows (those gone mostly 0.4-0.7 m/s straight up or
-    down); fresh `dt` 422 / 426 (vlp32c) Dynamic IoU 0.728 -> 0.757 / 0.677 -> 0.697,
+    ``moving_objects.csv`` 51 -> 46 rows (those gone moved 0.3-0.75 m/s vertically, most of
+    their speed); fresh `dt` 422 / 426 (vlp32c) Dynamic IoU 0.728 -> 0.757 / 0.677 -> 0.697,
     precision +0.03 each; 421 / 425 (hdl64), `static` 423 and the tuning seeds unchanged
     within 0.003; fresh `rush-hour` 424 EPE3D 0.0263 -> 0.0264 m, AccStrict 89.65 ->
     89.55 %. For a sensor mounted tilted, turn it off."""
