@@ -405,7 +405,9 @@ class ScanIndexStage:
     So it fills the thread that has time to spare: on real KITTI scans the caller's
     thread (objects, backend, map) sets the rate and the background one builds the index;
     on the simulated demo the network and refinement set it and the caller builds it while
-    they run. The index is the same wherever it is built."""
+    they run. The index is the same wherever it is built. The caller's thread claims it
+    before the refinement's verdict is known, so on a pair whose refinement is rejected
+    it may build an index that no objects stage uses."""
 
     name = "scan_index"
 

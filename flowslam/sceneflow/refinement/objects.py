@@ -532,6 +532,7 @@ def hold_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarra
         return 0
     image, T_old = older
     interval = scan_interval(dt)
+    margin, relative = baseline_window_margins(c.motion_evidence)
     labels = bev_clusters(source[stale], c.instance_cell_m)
     counts = np.bincount(labels)
     held = 0
@@ -545,7 +546,6 @@ def hold_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarra
         fitness = _fit(_plane_distances(landing, surface, c), c)[0]
         if fitness < c.min_fitness or fitness < _fit(_plane_distances(ego, surface, c), c)[0] - c.static_preference:
             continue
-        margin, relative = baseline_window_margins(c.motion_evidence)
         free = image.sees_beyond(transform_points(T_old, p), margin_m=margin, relative_margin=relative)
         if free.mean() < c.hold_free_share:
             continue
