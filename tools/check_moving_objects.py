@@ -1,0 +1,124 @@
+"""Do ``ssf``'s moving objects of a real sequence really move? A check by other scans (not a test).
+
+Issue 10 asks to look at what ``ssf`` calls moving on real scans, which have no flow
+labels: "parked cars must not move". This script runs the default ``ssf`` frontend over a
+sequence and, for each moving instance of scan k-1 with at least ``--min-points`` points
+(the car driving ahead included), asks the *other* scans of the sequence, placed in the
+world with reference poses (``--poses``; for the KITTI extract in ``../shared/data``
+its ``reference_icp_lidar.txt``; only this check uses them, never the frontend):
+
+- **static**: the instance's points where they are (world frame of scan k-1);
+- **moved**: the same points carried by the instance's own displacement per scan (the
+  world-frame mean of its flow landing minus its points) as many scans forward or back.
+
+For each scan 1 and 2 before and after that is in the sequence, the share of the points
+with a point of that scan within ``--radius`` metres, static and moved. The verdict takes
+the mean of (moved - static) over those scans: ``moving`` at >= ``--margin``, ``static``
+at <= -``--margin``, else ``unclear`` (both fit, e.g. a slide along a wall, or neither:
+hidden). A parked car that ``ssf`` moves comes out ``static``.
+
+    python tools/check_moving_objects.py [SEQUENCE] [--poses FILE] [--radius 0.2] [--margin 0.2] [--json OUT]
+
+Frames: the reference poses are ``T_world_sensor`` (KITTI layout, one line per scan);
+metres.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from flowslam.threads import set_thread_defaults
+
+set_thread_defaults()
+
+import numpy as np  # noqa: E402
+
+KITTI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti-odometry-00-first16"
+STEPS = (-2, -1, 1, 2)
+"""The other scans asked, relative to scan k-1."""
+
+
+def instance_checks(frames: list, outputs: list, poses: np.ndarray, radius: float, margin: float,
+                    min_points: int) -> list[dict]:
+    """One record per moving instance (``outputs[k]``: the frontend's output of pair
+    (k-1, k), ``frames[k-1]`` its source scan; ``poses`` (N,4,4) ``T_world_sensor``)."""
+    from scipy.spatial import cKDTree
+
+    from flowslam.geometry import transform_points
+
+    world = [transform_points(poses[i], f.points) for i, f in enumerate(frames)]
+    trees: dict[int, cKDTree] = {}
+
+    def share(x: np.ndarray, j: int) -> float:
+        if j not in trees:
+            trees[j] = cKDTree(world[j])
+        return float(np.mean(np.isfinite(trees[j].query(x, distance_upper_bound=radius)[0])))
+
+    records = []
+    for k, out in enumerate(outputs):
+        if k == 0 or out is None or out.instance_ids is None or out.flow is None:
+            continue
+        i = k - 1
+        dynamic = ~np.asarray(out.static_mask, dtype=bool)
+        ids = np.asarray(out.instance_ids)
+        for inst in np.unique(ids[dynamic & (ids >= 0)]):
+            m = dynamic & (ids == inst)
+            if m.sum() < min_points:
+                continue
+            p = frames[i].points[m]
+            w = world[i][m]
+            step = (transform_points(poses[k], p + np.asarray(out.flow)[m]) - w).mean(axis=0)  # world m per scan
+            fits = {}
+            for dj in STEPS:
+                if 0 <= i + dj < len(frames):
+                    fits[dj] = (share(w, i + dj), share(w + dj * step, i + dj))
+            gain = float(np.mean([moved - still for still, moved in fits.values()])) if fits else 0.0
+            verdict = "moving" if gain >= margin else "static" if gain <= -margin else "unclear"
+            records.append({
+                "scan": i, "instance": int(inst), "points": int(m.sum()),
+                "centre_m": p.mean(axis=0).round(2).tolist(), "extent_m": np.ptp(p, axis=0).round(2).tolist(),
+                "speed_mps": float(np.linalg.norm(step[:2]) / max(frames[k].timestamp - frames[i].timestamp, 1e-9)),
+                "fits": {str(dj): [round(a, 3), round(b, 3)] for dj, (a, b) in fits.items()},
+                "gain": round(gain, 3), "verdict": verdict,
+            })
+    return records
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("sequence", nargs="?", default=str(KITTI))
+    ap.add_argument("--poses", default=None, help="reference poses (default: SEQUENCE/reference_icp_lidar.txt)")
+    ap.add_argument("--radius", type=float, default=0.2)
+    ap.add_argument("--margin", type=float, default=0.2)
+    ap.add_argument("--min-points", type=int, default=20)
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+
+    from flowslam.config import SsfConfig
+    from flowslam.datasets import open_dataset
+    from flowslam.frontends.ssf import SsfFrontend
+    from flowslam.trajectory import read_trajectory
+
+    sequence = Path(args.sequence)
+    poses = read_trajectory(Path(args.poses) if args.poses else sequence / "reference_icp_lidar.txt").poses
+    dataset = open_dataset(sequence)
+    frames = [dataset[i] for i in range(len(dataset))]
+    if len(poses) != len(frames):
+        raise SystemExit(f"{args.poses}: {len(poses)} poses for {len(frames)} scans")
+    frontend = SsfFrontend(SsfConfig(lookahead=False))
+    outputs = [frontend.process(f) for f in frames]
+    records = instance_checks(frames, outputs, poses, args.radius, args.margin, args.min_points)
+    print(f"{'scan':>4} {'inst':>4} {'pts':>5} {'centre (sensor, m)':>22} {'extent (m)':>18} {'m/s':>5} {'gain':>6}  verdict")
+    for r in records:
+        print(f"{r['scan']:4d} {r['instance']:4d} {r['points']:5d} {str(r['centre_m']):>22} {str(r['extent_m']):>18} "
+              f"{r['speed_mps']:5.1f} {r['gain']:6.2f}  {r['verdict']}")
+    counts = {v: sum(r["verdict"] == v for r in records) for v in ("moving", "static", "unclear")}
+    print(f"{len(records)} instances of >= {args.min_points} points: {counts}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"records": records, "counts": counts}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
