@@ -4,8 +4,9 @@ Issue 10 asks to look at what ``ssf`` calls moving on real scans, which have no 
 labels: "parked cars must not move". This script runs the default ``ssf`` frontend over a
 sequence and, for each moving instance of scan k-1 with at least ``--min-points`` points
 (the car driving ahead included), asks the *other* scans of the sequence, placed in the
-world with reference poses (``--poses``; for the KITTI extract in ``../shared/data``
-its ``reference_icp_lidar.txt``; only this check uses them, never the frontend):
+world with reference poses (``--poses``; by default ``SEQUENCE/reference_icp_lidar.txt`` as in the
+KITTI extract in ``../shared/data``, else the sequence's GT poses, e.g. a simulated one;
+only this check uses them, never the frontend):
 
 - **static**: the instance's points where they are (world frame of scan k-1);
 - **moved**: the same points carried by the instance's own displacement per scan (the
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 
 from flowslam.threads import set_thread_defaults
@@ -35,7 +37,8 @@ set_thread_defaults()
 
 import numpy as np  # noqa: E402
 
-KITTI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti-odometry-00-first16"
+DATA = Path(os.environ.get("FLOWSLAM_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+KITTI = DATA / "kitti-odometry-00-first16"
 STEPS = (-2, -1, 1, 2)
 """The other scans asked, relative to scan k-1."""
 
@@ -89,7 +92,8 @@ def instance_checks(frames: list, outputs: list, poses: np.ndarray, radius: floa
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sequence", nargs="?", default=str(KITTI))
-    ap.add_argument("--poses", default=None, help="reference poses (default: SEQUENCE/reference_icp_lidar.txt)")
+    ap.add_argument("--poses", default=None, help="reference poses (default: SEQUENCE/reference_icp_lidar.txt, "
+                                                  "else the sequence's GT poses)")
     ap.add_argument("--radius", type=float, default=0.2)
     ap.add_argument("--margin", type=float, default=0.2)
     ap.add_argument("--min-points", type=int, default=20)
@@ -102,11 +106,18 @@ def main() -> None:
     from flowslam.trajectory import read_trajectory
 
     sequence = Path(args.sequence)
-    poses = read_trajectory(Path(args.poses) if args.poses else sequence / "reference_icp_lidar.txt").poses
     dataset = open_dataset(sequence)
     frames = [dataset[i] for i in range(len(dataset))]
+    poses_file = Path(args.poses) if args.poses else sequence / "reference_icp_lidar.txt"
+    if poses_file.is_file():
+        poses, source = read_trajectory(poses_file).poses, str(poses_file)
+    elif args.poses is None and dataset.gt_poses is not None:
+        poses, source = np.asarray(dataset.gt_poses), "the sequence's GT poses"
+    else:
+        ap.error(f"{poses_file}: no such poses file (give the sequence's reference poses with --poses)")
     if len(poses) != len(frames):
-        raise SystemExit(f"{args.poses}: {len(poses)} poses for {len(frames)} scans")
+        ap.error(f"{source}: {len(poses)} poses for the {len(frames)} scans of {sequence}")
+    print(f"{sequence}: {len(frames)} scans, reference poses from {source}")
     frontend = SsfFrontend(SsfConfig(lookahead=False))
     outputs = [frontend.process(f) for f in frames]
     records = instance_checks(frames, outputs, poses, args.radius, args.margin, args.min_points)
