@@ -47,17 +47,16 @@ def instance_checks(frames: list, outputs: list, poses: np.ndarray, radius: floa
                     min_points: int) -> list[dict]:
     """One record per moving instance (``outputs[k]``: the frontend's output of pair
     (k-1, k), ``frames[k-1]`` its source scan; ``poses`` (N,4,4) ``T_world_sensor``)."""
-    from scipy.spatial import cKDTree
-
     from flowslam.geometry import transform_points
+    from flowslam.sceneflow.refinement.clusters import ScanSurface
 
     world = [transform_points(poses[i], f.points) for i, f in enumerate(frames)]
-    trees: dict[int, cKDTree] = {}
+    surfaces: dict[int, ScanSurface] = {}  # scan j in the world, indexed on first use
 
     def share(x: np.ndarray, j: int) -> float:
-        if j not in trees:
-            trees[j] = cKDTree(world[j])
-        return float(np.mean(np.isfinite(trees[j].query(x, distance_upper_bound=radius)[0])))
+        if j not in surfaces:
+            surfaces[j] = ScanSurface(world[j])
+        return float(np.mean(surfaces[j].near_any(x, radius)))
 
     records = []
     for k, out in enumerate(outputs):
