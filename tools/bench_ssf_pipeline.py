@@ -21,6 +21,12 @@ the issue compares against). A rate is frames after the first / wall time of the
 the median per-frame time is printed beside it.
 
     python tools/bench_ssf_pipeline.py [SEQUENCE] [--runs 3] [--threads N] [--frames 16] [--skip-stages]
+        [--weights W] [--from F]
+
+``--weights`` runs every ``ssf`` configuration with those network weights (e.g. from
+``flowslam adapt``) instead of the shipped ones. ``--from F`` still runs every frame but
+counts only frames F.. in the medians and rates, e.g. the frames held out of an
+adaptation on the sequence's first ones.
 
 The machine's load average is printed: on a shared machine the timings are upper bounds.
 The thread-pool environment is the one ``flowslam run`` sets (``flowslam.threads``:
@@ -51,17 +57,24 @@ CONFIGS = {
 }
 
 
-def run_once(frames, options: dict, threads: int | None) -> tuple[list[float], dict[str, list[float]]]:
-    """Per-frame wall times (ms) of ``process`` and of each stage, frames 1.. of one pass."""
+def network_options(threads: int | None, weights: Path | None) -> dict:
+    """``ssf.network`` options of every ``ssf`` configuration: torch threads, and the
+    weights when not the shipped ones."""
+    return {"num_threads": threads, **({"weights": weights} if weights else {})}
+
+
+def run_once(frames, options: dict, network: dict, first: int = 1) -> tuple[list[float], dict[str, list[float]]]:
+    """Per-frame wall times (ms) of ``process`` and of each stage, frames ``first``.. (at
+    least 1) of one pass over ``frames``."""
     from flowslam.config import SsfConfig
     from flowslam.frontends.ssf import SsfFrontend
 
-    frontend = SsfFrontend(SsfConfig(network={"num_threads": threads}, **options))
+    frontend = SsfFrontend(SsfConfig(network=network, **options))
     totals, stages = [], {}
     for k, frame in enumerate(frames):
         t0 = time.perf_counter()
         out = frontend.process(frame)
-        if k == 0:
+        if k < max(first, 1):
             continue
         totals.append(1e3 * (time.perf_counter() - t0))
         for name, ms in out.stats.get("stage_ms", {}).items():
@@ -76,9 +89,10 @@ END_TO_END = {
 }
 
 
-def run_end_to_end(sequence: Path, n_frames: int, frontend: str, options: dict, threads: int | None):
-    """(frames/s after the first frame, per-frame seconds, per-frame ms the frontend waited
-    for the stages run ahead (empty without them)) of the run loop on ``sequence``."""
+def run_end_to_end(sequence: Path, n_frames: int, frontend: str, options: dict, network: dict, first: int = 1):
+    """(frames/s from frame ``first`` (at least 1) on, per-frame seconds, per-frame ms the
+    frontend waited for the stages run ahead (empty without them)) of the run loop on
+    ``sequence``'s first ``n_frames``; every frame runs, only frames ``first``.. count."""
     from flowslam.config import PipelineConfig
     from flowslam.datasets import open_dataset
     from flowslam.pipeline import drive
@@ -86,7 +100,7 @@ def run_end_to_end(sequence: Path, n_frames: int, frontend: str, options: dict, 
 
     if frontend == "ssf":
         options = {**options, "ssf": {**options.get("ssf", {})}}
-        options["ssf"]["network"] = {**options["ssf"].get("network", {}), "num_threads": threads}
+        options["ssf"]["network"] = {**options["ssf"].get("network", {}), **network}
     config = PipelineConfig(frontend=frontend, backend="isam2", **options)
     dataset = open_dataset(sequence, config.dataset)
     slam = Slam(config)
@@ -95,9 +109,10 @@ def run_end_to_end(sequence: Path, n_frames: int, frontend: str, options: dict, 
                    on_frame=lambda k, seconds: laps.append((time.perf_counter(), seconds)))
     if result.error is not None:
         raise result.error
-    wall = laps[-1][0] - laps[0][0]  # from the end of frame 0 to the end of the last
-    waits = [stats["ahead_wait_ms"] for stats in result.frontend_stats if "ahead_wait_ms" in stats]
-    return (len(laps) - 1) / wall, [seconds for _, seconds in laps[1:]], waits
+    first = max(first, 1)
+    wall = laps[-1][0] - laps[first - 1][0]  # from the end of frame first-1 to the end of the last
+    waits = [stats["ahead_wait_ms"] for stats in result.frontend_stats[first:] if "ahead_wait_ms" in stats]
+    return (len(laps) - first) / wall, [seconds for _, seconds in laps[first:]], waits
 
 
 def main() -> None:
@@ -107,6 +122,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None,
                     help="torch threads of the network (default: the frontend's own default)")
     ap.add_argument("--frames", type=int, default=16)
+    ap.add_argument("--weights", type=Path, default=None, help="network weights of ssf (default: shipped)")
+    ap.add_argument("--from", dest="first", type=int, default=1, help="count frames from this one on (all run)")
     ap.add_argument("--skip-stages", action="store_true", help="only the end-to-end rates")
     args = ap.parse_args()
 
@@ -115,12 +132,14 @@ def main() -> None:
     ds = open_dataset(args.sequence)
     frames = [ds[i] for i in range(min(args.frames, len(ds)))]
     n_points = int(np.median([len(f.points) for f in frames]))
-    print(f"{args.sequence.name}: {len(frames)} frames, median {n_points} points; threads {args.threads or 'default'}; "
+    network = network_options(args.threads, args.weights)
+    print(f"{args.sequence.name}: {len(frames)} frames (counted from {max(args.first, 1)}), median {n_points} points; "
+          f"weights {args.weights or 'shipped'}; threads {args.threads or 'default'}; "
           f"load average {os.getloadavg()[0]:.2f}; " + " ".join(f"{k}={v}" for k, v in THREAD_ENV.items()))
     for name, options in ({} if args.skip_stages else CONFIGS).items():
         totals, stages = [], {}
         for _ in range(args.runs):
-            t, s = run_once(frames, options, args.threads)
+            t, s = run_once(frames, options, network, args.first)
             totals += t
             for k, v in s.items():
                 stages.setdefault(k, []).extend(v)
@@ -133,7 +152,7 @@ def main() -> None:
     waits: dict[str, list[float]] = {name: [] for name in END_TO_END}
     for _ in range(args.runs):  # alternating, so that the configurations share the load
         for name, (frontend, options) in END_TO_END.items():
-            rate, seconds, waited = run_end_to_end(args.sequence, args.frames, frontend, options, args.threads)
+            rate, seconds, waited = run_end_to_end(args.sequence, args.frames, frontend, options, network, args.first)
             rates[name].append(rate)
             laps[name] += seconds
             waits[name] += waited

@@ -19,6 +19,10 @@ at <= -``--margin``, else ``unclear`` (both fit, e.g. a slide along a wall, or n
 hidden). A parked car that ``ssf`` moves comes out ``static``.
 
     python tools/check_moving_objects.py [SEQUENCE] [--poses FILE] [--radius 0.2] [--margin 0.2] [--json OUT]
+        [--weights W]
+
+``--weights`` runs ``ssf`` with those network weights (e.g. from ``flowslam adapt``)
+instead of the shipped ones.
 
 Frames: the reference poses are ``T_world_sensor`` (KITTI layout, one line per scan);
 metres.
@@ -97,6 +101,7 @@ def main() -> None:
     ap.add_argument("--margin", type=float, default=0.2)
     ap.add_argument("--min-points", type=int, default=20)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--weights", default=None, help="network weights of ssf (default: shipped)")
     args = ap.parse_args()
 
     from flowslam.config import SsfConfig
@@ -116,8 +121,9 @@ def main() -> None:
         ap.error(f"{poses_file}: no such poses file (give the sequence's reference poses with --poses)")
     if len(poses) != len(frames):
         ap.error(f"{source}: {len(poses)} poses for the {len(frames)} scans of {sequence}")
-    print(f"{sequence}: {len(frames)} scans, reference poses from {source}")
-    frontend = SsfFrontend(SsfConfig(lookahead=False))
+    print(f"{sequence}: {len(frames)} scans, reference poses from {source}, weights {args.weights or 'shipped'}")
+    network = {"weights": args.weights} if args.weights else {}
+    frontend = SsfFrontend(SsfConfig(lookahead=False, network=network))
     outputs = [frontend.process(f) for f in frames]
     records = instance_checks(frames, outputs, poses, args.radius, args.margin, args.min_points)
     print(f"{'scan':>4} {'inst':>4} {'pts':>5} {'centre (sensor, m)':>22} {'extent (m)':>18} {'m/s':>5} {'gain':>6}  verdict")
