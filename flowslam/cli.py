@@ -635,7 +635,6 @@ def adapt_command(
     """Fine-tune the scene-flow network on your own unlabelled sequences (self-supervised, CPU by default)."""
     with _user_errors():
         from rich.console import Console
-        from rich.table import Table
 
         from flowslam.config import load_config
         from flowslam.sceneflow.adapt import adapt
@@ -646,20 +645,31 @@ def adapt_command(
             "adapt.cache_dir": cache_dir and str(cache_dir), "adapt.epochs": epochs,
             "adapt.holdout_fraction": holdout, "adapt.max_minutes": max_minutes})
         result = adapt(sequences, cfg, weights_out, resume=resume, progress=not no_progress)
-        table = Table(title=f"network-only ssf on the held-out frames (weights of epoch {result['written_epoch']}, "
-                            f"best held-out score at epoch {result['best_epoch']}; {result['minutes']:.1f} min)")
-        for column in ("sequence", "measure", "starting weights", "adapted"):
-            table.add_column(column, justify="left" if column in ("sequence", "measure") else "right")
-        for seq, both in result["report"].items():
-            start, adapted = both["start"], both["adapted"]
-            flat = lambda d: {**{k: v for k, v in d.items() if k != "gt_flow"},  # noqa: E731
-                              **{f"GT {k}": v for k, v in d.get("gt_flow", {}).items()}}
-            start, adapted = flat(start), flat(adapted)
-            for key in start:
-                table.add_row(Path(seq).name, key, f"{start[key]:.4f}", f"{adapted.get(key, float('nan')):.4f}")
-        Console().print(table)
+        title = (f"on the held-out frames (weights of epoch {result['written_epoch']}, best held-out score at "
+                 f"epoch {result['best_epoch']}; {result['minutes']:.1f} min)")
+        for mode, suffix in (("network-only ssf", ""), ("default ssf (refined, objects)", "_refined")):
+            rows = [(seq, both[f"start{suffix}"], both[f"adapted{suffix}"]) for seq, both in result["report"].items()
+                    if f"start{suffix}" in both]
+            if rows:
+                Console().print(_comparison_table(f"{mode} {title}", rows))
         typer.echo(f"weights: {result['weights']} (sha256 {result['sha256']}); "
                    f"report: {Path(cfg.adapt.out_dir) / 'report.json'}")
+
+
+def _comparison_table(title: str, rows: list[tuple[str, dict, dict]]):
+    """A rich table of (sequence, starting weights' scores, adapted weights' scores) rows."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    for column in ("sequence", "measure", "starting weights", "adapted"):
+        table.add_column(column, justify="left" if column in ("sequence", "measure") else "right")
+    flat = lambda d: {**{k: v for k, v in d.items() if k != "gt_flow"},  # noqa: E731
+                      **{f"GT {k}": v for k, v in d.get("gt_flow", {}).items()}}
+    for seq, start, adapted in rows:
+        start, adapted = flat(start), flat(adapted)
+        for key in start:
+            table.add_row(Path(seq).name, key, f"{start[key]:.4f}", f"{adapted.get(key, float('nan')):.4f}")
+    return table
 
 
 @app.command("view")

@@ -170,6 +170,14 @@ def test_report_compares_both_weights_on_the_tail(runs):
         assert 0 <= s["data_term_m"] <= 2.0 and np.isfinite(s["teacher_epe_m"])
         assert 0 <= s["rpe1_trans_m"] < 0.5  # simulated data has GT poses: the report uses them
         assert np.isfinite(s["gt_flow"]["EPE3D"])
+        assert "objects_ms_median" not in s  # the costs are the refined runs'
+        refined = scores[f"{which}_refined"]
+        assert 0 < refined["objects_ms_median"] < refined["frame_ms_median"]
+        assert refined["object_candidates_mean"] >= 0 and refined["objects_mean"] >= 0
+        assert 0 <= refined["rpe1_trans_m"] < 0.5 and np.isfinite(refined["gt_flow"]["EPE3D"])
+    # The refined frontend with the teacher's own weights is the teacher (up to the run's
+    # later start): far closer to it than the network alone.
+    assert scores["start_refined"]["teacher_epe_m"] < 0.5 * scores["start"]["teacher_epe_m"]
     # The best epoch has the lowest held-out EPE against the teacher on the fixed held-out
     # samples (epoch 0: the start); the written one is the latest within 1 % of it.
     history = runs["cut"]["history"]

@@ -84,6 +84,10 @@ class AdaptConfig(StrictModel):
     older step."""
     seed: int = 0
     """Sampling, augmentation and shuffling seed."""
+    report_refined: bool = True
+    """The final report also runs both weights in the whole default ``ssf`` frontend over
+    the held-out frames (its accuracy and what it spends per pair: objects-stage time,
+    candidates); False: network only (faster)."""
     max_minutes: float | None = Field(None, gt=0)
     """Stop (after a checkpoint) once this much wall time has passed, teacher included."""
     device: Literal["auto", "cpu", "cuda"] = "auto"

@@ -16,7 +16,16 @@ Measured per sequence:
   translation RMSE against the GT poses) and, with GT flow, the ``flow-eval`` metrics
   (``EPE3D``, ``DynamicIoU``, ...) under ``gt_flow``.
 
-Lengths in metres.
+Then, with ``adapt.report_refined``, each set of weights also runs in the whole default
+``ssf`` frontend (test-time refinement and objects) over the same frames, which shows
+what the weights change where they are used: the same measures (against the teacher
+they are ~0 for the starting weights, which made it), and what the frontend spends per
+held-out pair: ``frame_ms_median`` (all stages), ``objects_ms_median`` (the objects
+stage), ``object_candidates_mean`` (points handed to it), ``objects_mean`` (objects it
+registered), ``dynamic_points_mean`` (points it left dynamic). A network that flags
+fewer false candidates makes the objects stage cheaper.
+
+Lengths in metres, times in milliseconds (wall time of this process).
 """
 
 from __future__ import annotations
@@ -71,24 +80,49 @@ class _SelfSupervisedScores:
         return out
 
 
-def network_only(config: PipelineConfig, weights: Path) -> PipelineConfig:
-    """``config`` with the network-only ``ssf`` (no refinement) and these weights."""
+def with_weights(config: PipelineConfig, weights: Path) -> PipelineConfig:
+    """``config`` with these network weights (the default, refined ``ssf`` otherwise)."""
     config = config.model_copy(deep=True)
-    config.ssf.refine.enabled = False
     config.ssf.network.weights = Path(weights)
     return config
 
 
-def score_weights(sequence, config: PipelineConfig, weights: Path, num_frames: int) -> dict:
-    """The module doc's measures of network-only ``ssf`` with ``weights`` on the held-out
-    pairs of ``sequence`` (a ``loop.Sequence`` with its teacher); ``num_frames``: the
-    network's input scans (the run starts that many scans before the tail)."""
+def network_only(config: PipelineConfig, weights: Path) -> PipelineConfig:
+    """``config`` with the network-only ``ssf`` (no refinement) and these weights."""
+    config = with_weights(config, weights)
+    config.ssf.refine.enabled = False
+    return config
+
+
+def _frontend_costs(stats: list[dict], rows: list[int]) -> dict:
+    """What the frontend spent on the pairs ``rows`` of a run's ``frontend_stats``."""
+    picked = [stats[r] for r in rows]
+
+    def mean(key):
+        values = [s[key] for s in picked if key in s]
+        return float(np.mean(values)) if values else float("nan")
+
+    def median_ms(stage=None):
+        values = [sum(s["stage_ms"].values()) if stage is None else s["stage_ms"][stage]
+                  for s in picked if stage is None or stage in s.get("stage_ms", {})]
+        return float(np.median(values)) if values else float("nan")
+
+    return {"frame_ms_median": median_ms(), "objects_ms_median": median_ms("objects"),
+            "object_candidates_mean": mean("object_candidates"), "objects_mean": mean("objects"),
+            "dynamic_points_mean": mean("dynamic_points")}
+
+
+def score_weights(sequence, config: PipelineConfig, weights: Path, num_frames: int, refined: bool = False) -> dict:
+    """The module doc's measures of network-only ``ssf`` (``refined``: the default ``ssf``
+    of ``config``, plus its costs per pair) with ``weights`` on the held-out pairs of
+    ``sequence`` (a ``loop.Sequence`` with its teacher); ``num_frames``: the network's
+    input scans (the run starts that many scans before the tail)."""
     from flowslam.evaluation.rpe import rpe
     from flowslam.flow_eval import FlowEvaluation
     from flowslam.pipeline import run_pipeline
     from flowslam.registry import make_backend, make_frontend
 
-    cfg = network_only(config, weights)
+    cfg = with_weights(config, weights) if refined else network_only(config, weights)
     scored = set(sequence.holdout_pairs)
     scores = _SelfSupervisedScores(sequence.teacher, config.adapt.truncate_m, scored)
     gt_poses = sequence.dataset.gt_poses
@@ -104,6 +138,8 @@ def score_weights(sequence, config: PipelineConfig, weights: Path, num_frames: i
     if result.error is not None:
         raise result.error
     out = scores.result()
+    if refined:
+        out.update(_frontend_costs(result.frontend_stats, [result.indices.index(i) for i in sorted(scored)]))
     if gt_poses is not None:
         rows = [result.indices.index(i) for i in sequence.holdout_frames]
         out["rpe1_trans_m"] = rpe(result.poses[rows], np.asarray(gt_poses)[sequence.holdout_frames], delta=1)["rmse"]
@@ -115,6 +151,11 @@ def score_weights(sequence, config: PipelineConfig, weights: Path, num_frames: i
 
 def compare_on_holdout(sequences, config: PipelineConfig, init_path: Path, adapted_path: Path,
                        num_frames: int) -> dict:
-    """``{sequence path: {"start": scores, "adapted": scores}}`` (``score_weights``)."""
-    return {str(seq.path): {"start": score_weights(seq, config, init_path, num_frames),
-                            "adapted": score_weights(seq, config, adapted_path, num_frames)} for seq in sequences}
+    """``{sequence path: {"start": scores, "adapted": scores}}`` (``score_weights``, network
+    only), with ``adapt.report_refined`` also ``"start_refined"`` and ``"adapted_refined"``
+    (the default ``ssf``)."""
+    modes = (False, True) if config.adapt.report_refined else (False,)
+    return {str(seq.path): {f"{name}{'_refined' if refined else ''}": score_weights(seq, config, path, num_frames,
+                                                                                  refined)
+                            for refined in modes for name, path in (("start", init_path), ("adapted", adapted_path))}
+            for seq in sequences}
