@@ -103,8 +103,8 @@ def _frontend_costs(stats: list[dict], rows: list[int]) -> dict:
         return float(np.mean(values)) if values else float("nan")
 
     def median_ms(stage=None):
-        values = [sum(s["stage_ms"].values()) if stage is None else s["stage_ms"][stage]
-                  for s in picked if stage is None or stage in s.get("stage_ms", {})]
+        laps = [s["stage_ms"] for s in picked if "stage_ms" in s]
+        values = [sum(lap.values()) if stage is None else lap[stage] for lap in laps if stage is None or stage in lap]
         return float(np.median(values)) if values else float("nan")
 
     return {"frame_ms_median": median_ms(), "objects_ms_median": median_ms("objects"),
