@@ -87,9 +87,17 @@ def test_the_ego_motion_explains_an_object_within_the_noise_of_its_few_points():
     assert not _ego_explains((12 / 15, 0.025), 13 / 15, 0.033, 15, c.model_copy(update={"static_preference_sigmas": 0.0}))
     # 1000 points: the same shares are 7 standard errors apart, a real difference
     assert not _ego_explains((0.80, 0.025), 0.867, 0.033, 1000, c)
-    # the RMSE test still applies: 0.029 > 1.2 x 0.019 + 0.005 = 0.0278
-    assert not _ego_explains((13 / 15, 0.029), 13 / 15, 0.019, 15, c)
+    # the RMSE test applies above the floor of a static surface's scatter (3.5 cm):
+    # 0.045 > 1.2 x 0.019 + 0.005 = 0.0278 and > 0.035
+    assert not _ego_explains((13 / 15, 0.045), 13 / 15, 0.019, 15, c)
     assert _ego_explains((13 / 15, 0.027), 13 / 15, 0.019, 15, c)
+    # below the floor a lower ICP RMSE is no evidence: KITTI's parked-car piece, 154 points,
+    # fitness 0.974 under the ego motion against 0.987, RMSE 3.4 against 1.9 cm
+    assert _ego_explains((0.974, 0.034), 0.987, 0.019, 154, c)
+    assert not _ego_explains((0.974, 0.034), 0.987, 0.019, 154, c.model_copy(update={"static_rmse_floor_m": 0.0}))
+    assert not _ego_explains((13 / 15, 0.029), 13 / 15, 0.019, 15, c.model_copy(update={"static_rmse_floor_m": 0.0}))
+    # the floor never excuses a fitness gap: 7 standard errors on 1000 points
+    assert not _ego_explains((0.80, 0.010), 0.867, 0.033, 1000, c)
 
 
 def _surface(a, b, origin, step: float, rng) -> np.ndarray:

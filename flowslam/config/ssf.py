@@ -461,6 +461,13 @@ class ObjectRefinementConfig(StrictModel):
     docs/sceneflow_evaluation.md). 0: the fixed ``static_preference`` alone."""
     static_rmse_ratio: float = Field(1.2, ge=1)
     """... and its inlier RMSE at most this times the ICP's (+ 5 mm) ..."""
+    static_rmse_floor_m: float = Field(0.035, ge=0)
+    """... or at most this (m), the spread of a static surface in scan k (as
+    ``static_accept_rmse_m``): an ICP with six degrees of freedom lowers the RMSE of a
+    small piece of any body a little, which is no evidence of motion (real KITTI 0-15 with
+    weights adapted on frames 0-7: a 154-point piece of the parked car beside the ego, RMSE
+    3.5 cm under the ego motion against 1.9 cm after ICP, moved at 1 m/s; fresh `dt`
+    481-496: mean Dynamic IoU +0.002, docs/sceneflow_evaluation.md, stop 42). 0: off ..."""
     static_fitness_accept: float = Field(0.9, ge=0, le=1.01)
     """... or when the ego motion alone puts this share of its points on scan k's surface
     (no ICP then) ...: a planar patch (road, wall) fits equally well slid along itself, so

@@ -349,9 +349,12 @@ def _ego_explains(static_score: tuple[float, float], fitness: float, rmse: float
     points): its fitness is within ``static_preference`` of the ICP's (or within
     ``static_preference_sigmas`` standard errors of a share of n points, if more: one point
     of 15 is 0.067 of fitness) and its inlier RMSE at most ``static_rmse_ratio`` times the
-    ICP's + 5 mm."""
+    ICP's + 5 mm, or at most ``static_rmse_floor_m`` (what a static surface scatters: a
+    six-degree-of-freedom ICP lowers the RMSE of a small piece of any body a little)."""
     static_fitness, static_rmse = static_score
-    return static_fitness >= fitness - _fitness_margin(fitness, n, c) and static_rmse <= c.static_rmse_ratio * rmse + 0.005
+    if static_fitness < fitness - _fitness_margin(fitness, n, c):
+        return False
+    return static_rmse <= c.static_rmse_ratio * rmse + 0.005 or static_rmse <= c.static_rmse_floor_m
 
 
 def _fitness_margin(fitness: float, n: int, c: ObjectRefinementConfig) -> float:
