@@ -64,8 +64,8 @@ def network_options(threads: int | None, weights: Path | None) -> dict:
 
 
 def run_once(frames, options: dict, network: dict, first: int = 1) -> tuple[list[float], dict[str, list[float]]]:
-    """Per-frame wall times (ms) of ``process`` and of each stage, frames ``first``.. (at
-    least 1) of one pass over ``frames``."""
+    """Per-frame wall times (ms) of ``process`` and of each stage, frames ``first``.. (>= 1)
+    of one pass over ``frames``."""
     from flowslam.config import SsfConfig
     from flowslam.frontends.ssf import SsfFrontend
 
@@ -74,7 +74,7 @@ def run_once(frames, options: dict, network: dict, first: int = 1) -> tuple[list
     for k, frame in enumerate(frames):
         t0 = time.perf_counter()
         out = frontend.process(frame)
-        if k < max(first, 1):
+        if k < first:
             continue
         totals.append(1e3 * (time.perf_counter() - t0))
         for name, ms in out.stats.get("stage_ms", {}).items():
@@ -90,7 +90,7 @@ END_TO_END = {
 
 
 def run_end_to_end(sequence: Path, n_frames: int, frontend: str, options: dict, network: dict, first: int = 1):
-    """(frames/s from frame ``first`` (at least 1) on, per-frame seconds, per-frame ms the
+    """(frames/s from frame ``first`` (>= 1) on, per-frame seconds, per-frame ms the
     frontend waited for the stages run ahead (empty without them)) of the run loop on
     ``sequence``'s first ``n_frames``; every frame runs, only frames ``first``.. count."""
     from flowslam.config import PipelineConfig
@@ -109,7 +109,6 @@ def run_end_to_end(sequence: Path, n_frames: int, frontend: str, options: dict, 
                    on_frame=lambda k, seconds: laps.append((time.perf_counter(), seconds)))
     if result.error is not None:
         raise result.error
-    first = max(first, 1)
     wall = laps[-1][0] - laps[first - 1][0]  # from the end of frame first-1 to the end of the last
     waits = [stats["ahead_wait_ms"] for stats in result.frontend_stats[first:] if "ahead_wait_ms" in stats]
     return (len(laps) - first) / wall, [seconds for _, seconds in laps[first:]], waits
@@ -133,13 +132,14 @@ def main() -> None:
     frames = [ds[i] for i in range(min(args.frames, len(ds)))]
     n_points = int(np.median([len(f.points) for f in frames]))
     network = network_options(args.threads, args.weights)
-    print(f"{args.sequence.name}: {len(frames)} frames (counted from {max(args.first, 1)}), median {n_points} points; "
+    first = max(args.first, 1)  # frame 0 has no pair
+    print(f"{args.sequence.name}: {len(frames)} frames (counted from {first}), median {n_points} points; "
           f"weights {args.weights or 'shipped'}; threads {args.threads or 'default'}; "
           f"load average {os.getloadavg()[0]:.2f}; " + " ".join(f"{k}={v}" for k, v in THREAD_ENV.items()))
     for name, options in ({} if args.skip_stages else CONFIGS).items():
         totals, stages = [], {}
         for _ in range(args.runs):
-            t, s = run_once(frames, options, network, args.first)
+            t, s = run_once(frames, options, network, first)
             totals += t
             for k, v in s.items():
                 stages.setdefault(k, []).extend(v)
@@ -152,7 +152,7 @@ def main() -> None:
     waits: dict[str, list[float]] = {name: [] for name in END_TO_END}
     for _ in range(args.runs):  # alternating, so that the configurations share the load
         for name, (frontend, options) in END_TO_END.items():
-            rate, seconds, waited = run_end_to_end(args.sequence, args.frames, frontend, options, network, args.first)
+            rate, seconds, waited = run_end_to_end(args.sequence, args.frames, frontend, options, network, first)
             rates[name].append(rate)
             laps[name] += seconds
             waits[name] += waited

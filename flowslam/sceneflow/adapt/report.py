@@ -97,17 +97,16 @@ def network_only(config: PipelineConfig, weights: Path) -> PipelineConfig:
 def _frontend_costs(stats: list[dict], rows: list[int]) -> dict:
     """What the frontend spent on the pairs ``rows`` of a run's ``frontend_stats``."""
     picked = [stats[r] for r in rows]
+    laps = [s["stage_ms"] for s in picked if "stage_ms" in s]
 
-    def mean(key):
-        values = [s[key] for s in picked if key in s]
-        return float(np.mean(values)) if values else float("nan")
+    def summary(reduce, values: list) -> float:
+        return float(reduce(values)) if values else float("nan")
 
-    def median_ms(stage=None):
-        laps = [s["stage_ms"] for s in picked if "stage_ms" in s]
-        values = [sum(lap.values()) if stage is None else lap[stage] for lap in laps if stage is None or stage in lap]
-        return float(np.median(values)) if values else float("nan")
+    def mean(key: str) -> float:
+        return summary(np.mean, [s[key] for s in picked if key in s])
 
-    return {"frame_ms_median": median_ms(), "objects_ms_median": median_ms("objects"),
+    return {"frame_ms_median": summary(np.median, [sum(lap.values()) for lap in laps]),
+            "objects_ms_median": summary(np.median, [lap["objects"] for lap in laps if "objects" in lap]),
             "object_candidates_mean": mean("object_candidates"), "objects_mean": mean("objects"),
             "dynamic_points_mean": mean("dynamic_points")}
 
