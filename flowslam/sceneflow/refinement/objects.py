@@ -11,8 +11,8 @@ ICP: a ring's arc on flat ground slides along itself under ICP). A cluster wider
 ``split_extent_m`` is also registered as its ``instance_cell_m`` components, which replace it
 when they explain ``split_gain`` more of it (a queue or a crowd merged into one cluster).
 Each object with at least ``min_points``
-points is registered to scan ``k`` by point-to-point ICP (Open3D, coarse-to-fine
-correspondence distances), starting from the ego rotation and the median network
+points is registered to scan ``k`` by point-to-point ICP (Open3D's rule, compiled:
+:mod:`~flowslam.sceneflow.refinement.compiled_icp`; coarse-to-fine correspondence distances), starting from the ego rotation and the median network
 displacement of its points. Accepted objects (ICP fitness and RMSE within bounds)
 get the rigid flow of their own motion (polished by one point-to-plane ICP,
 ``plane_stage_radius_m``, kept when it fits as tightly, and made planar,
@@ -68,6 +68,7 @@ import numpy as np
 
 from flowslam.geometry import rigid_flow, transform_points
 from flowslam.config.ssf import ObjectRefinementConfig
+from flowslam.sceneflow.refinement.compiled_icp import IcpTarget, register
 from flowslam.sceneflow.refinement.clusters import ScanSurface, bev_clusters, bev_extent, in_bounds, lowest_per_cell
 from flowslam.sceneflow.refinement.visibility import baseline_window_margins
 
@@ -90,43 +91,17 @@ class ObjectRefinement:
 
 
 
-def _register(p: np.ndarray, src, box: np.ndarray, tgt, T: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
-    """Point-to-point ICP of an object's points ``p`` (``src``: their Open3D cloud, see
-    :func:`_cloud`) onto the target box ``box`` (``tgt``: its cloud), coarse to fine
-    (``correspondence_m``); returns T.
-
-    Each stage registers onto the box's points near the object's current landing (its
-    bounding box, :func:`_near_landing`): only those can be matched unless the stage moves
-    the object further than the slack, and Open3D builds its KD-tree over the target at
-    every call (1.3 ms for a 7k-point box; the crop holds a fraction of it). The first
-    stage crops within ``correspondence_m`` + ``COARSE_STAGE_SLACK_M`` and registers again
-    onto the whole box when it moved some point further than that slack (as if it had never
-    cropped); each finer stage crops within ``correspondence_m`` + ``FINE_STAGE_SLACK_M``.
+def _register(p: np.ndarray, target: IcpTarget, T: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
+    """Point-to-point ICP of an object's points ``p`` onto ``target`` (its box's
+    :class:`~flowslam.sceneflow.refinement.compiled_icp.IcpTarget`, one KD-tree shared by
+    every start) from ``T``, coarse to fine (``correspondence_m``, each stage at most
+    ``max_iterations``; Open3D's point-to-point rule, compiled); returns T.
 
     Point-to-point, not point-to-plane: normals of a few hundred sparse ring points are
     unreliable (measured: point-to-plane diverged on several simulated objects, and as a
     last stage of every start it let wrong starts win on the real AV2 pair). See
     :func:`_polish` for the one point-to-plane step that is used."""
-    import open3d as o3d
-
-    reg = o3d.pipelines.registration
-    criteria = _criteria(c)
-    def icp(target, max_dist, T):
-        return np.asarray(reg.registration_icp(src, target, max_dist, T, reg.TransformationEstimationPointToPoint(),
-                                               criteria).transformation).copy()
-
-    coarse, *finer = c.correspondence_m
-    near = _near_landing(box, p, T, coarse, COARSE_STAGE_SLACK_M)
-    moved = icp(_cloud(near), coarse, T) if 0 < len(near) < len(box) else None
-    if moved is None or np.abs(transform_points(moved, p) - transform_points(T, p)).max() > COARSE_STAGE_SLACK_M:
-        moved = icp(tgt, coarse, T)  # as if it had never cropped
-    T = moved
-    for max_dist in finer:
-        near = _near_landing(box, p, T, max_dist)
-        if len(near) == 0:  # nothing within reach: no correspondence, T stays (as onto the whole box)
-            continue
-        T = icp(_cloud(near), max_dist, T)
-    return T
+    return register(p, target, T, c.correspondence_m, c.max_iterations, ICP_RELATIVE_CHANGE, ICP_RELATIVE_CHANGE)
 
 
 def _near_landing(box: np.ndarray, p: np.ndarray, T: np.ndarray, max_dist: float,
@@ -156,11 +131,16 @@ def _polish(p: np.ndarray, src, box: np.ndarray, T: np.ndarray, c: ObjectRefinem
                                            reg.TransformationEstimationPointToPlane(), _criteria(c)).transformation).copy()
 
 
+ICP_RELATIVE_CHANGE = 1e-6
+"""An object ICP stage stops when its fitness and inlier RMSE (m) each change by less."""
+
+
 def _criteria(c: ObjectRefinementConfig):
-    """The convergence criteria of every object ICP stage (``max_iterations`` per stage)."""
+    """Open3D's form of the object ICP's convergence criteria (``max_iterations`` per stage)."""
     import open3d as o3d
 
-    return o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6,
+    return o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=ICP_RELATIVE_CHANGE,
+                                                             relative_rmse=ICP_RELATIVE_CHANGE,
                                                              max_iteration=c.max_iterations)
 
 
@@ -172,13 +152,8 @@ PLANE_STAGE_MIN_TARGET = 10
 """Target points the point-to-plane stage needs (fewer: it is skipped)."""
 
 FINE_STAGE_SLACK_M = 0.5
-"""How far (m) a finer ICP stage may move an object beyond its correspondence distance and
-still see every target point it could match (:func:`_register`)."""
-
-COARSE_STAGE_SLACK_M = 1.0
-"""The same for the first ICP stage, which registers again onto the whole target box when
-it moved a point further (:func:`_register`)."""
-
+"""How far (m) the point-to-plane polish may move an object beyond its correspondence
+distance and still see every target point it could match (:func:`_polish`)."""
 
 def _cloud(points: np.ndarray):
     """Open3D point cloud of (N,3) points (built once per object, shared by its ICP starts)."""
@@ -187,18 +162,17 @@ def _cloud(points: np.ndarray):
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
 
 
-def _best_icp(p: np.ndarray, box: np.ndarray, tgt, surface: ScanSurface, starts: list[np.ndarray],
+def _best_icp(p: np.ndarray, tgt: IcpTarget, surface: ScanSurface, starts: list[np.ndarray],
               T_ego: np.ndarray, c: ObjectRefinementConfig, prefer_first: bool = False):
-    """ICP of ``p`` onto the target box ``box`` (``tgt``: its Open3D cloud) from each start;
+    """ICP of ``p`` onto the target box ``tgt`` from each start;
     the best (:func:`_pick`, ``prefer_first``) by fitness and RMSE against ``surface`` of the
     results that keep the object's centroid on the ground (not :func:`_lifted` from its
     ``T_ego`` landing): (T, fitness, rmse, start). When every result lifts it: (the first
     start, 0, inf, the first start)."""
     results = []
-    src = _cloud(p)
     centroid = p.mean(axis=0)
     for T_start in starts:
-        T = _register(p, src, box, tgt, T_start, c)
+        T = _register(p, tgt, T_start, c)
         if _lifts_centroid(T, centroid, T_ego, c):
             continue
         results.append((T, *_score(p, T, surface, c), T_start))
@@ -718,7 +692,7 @@ def _refit(q: np.ndarray, motion: np.ndarray, surface: ScanSurface, c: ObjectRef
     box = surface.in_box(landing.min(axis=0) - c.margin_m, landing.max(axis=0) + c.margin_m)
     if len(box) < c.min_points:
         return motion
-    return _register(q, _cloud(q), box, _cloud(box), motion, c)
+    return _register(q, IcpTarget(box), motion, c)
 
 
 def _joins(source: np.ndarray, members: np.ndarray, taken: np.ndarray, motion: np.ndarray, T_ego: np.ndarray,
@@ -958,10 +932,10 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     record["target_points"] = int(len(box))
     if len(box) < c.min_points:
         return record
-    tgt = _cloud(box)
+    tgt = IcpTarget(box)
     motions = []  # candidate rigid motions of (parts of) this object besides the ego motion
     q = p[_icp_subset(len(p), c)]  # the points its ICP registers
-    T, fitness, rmse, T_start = _best_icp(q, box, tgt, surface, [T0] + mover_starts, T_ego, c,
+    T, fitness, rmse, T_start = _best_icp(q, tgt, surface, [T0] + mover_starts, T_ego, c,
                                           prefer_first=c.prefer_first_start)
     moved_by = float(np.linalg.norm((T[:3, :3] - R) @ p.mean(axis=0) + T[:3, 3] - T_start[:3, 3]))
     record.update(fitness=fitness, rmse_m=rmse, icp_correction_m=moved_by)
@@ -977,7 +951,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
             # does not already explain them (no fitness, at most 1, can then beat its by static_preference)
             if joint_on_movers + c.static_preference >= 1.0:
                 continue
-            Tm, fm, rm, _ = _best_icp(moving_part, box, tgt, surface, starts + [T0], T_ego, c, prefer_first=False)
+            Tm, fm, rm, _ = _best_icp(moving_part, tgt, surface, starts + [T0], T_ego, c, prefer_first=False)
             record.update(mover_fitness=fm, mover_rmse_m=rm)
             if fm >= c.min_fitness and rm <= c.max_rmse_m and fm > joint_on_movers + c.static_preference:
                 record["accepted"] = True
@@ -1059,7 +1033,7 @@ def _observable(landing: np.ndarray, departure: np.ndarray, surface: ScanSurface
 
 
 def _leftover_motion(p: np.ndarray, flow: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], box: np.ndarray,
-                     tgt, surface: ScanSurface, T_ego: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray | None:
+                     tgt: IcpTarget, surface: ScanSurface, T_ego: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray | None:
     """A further rigid motion for the points of an object (``p``, frame k-1; ``flow`` their
     input flow, ``ego`` their ego landings) that neither the ego motion nor any of its
     ``motions`` lands on scan k's surface (within ``score_plane_m``), when they are at least
@@ -1075,7 +1049,7 @@ def _leftover_motion(p: np.ndarray, flow: np.ndarray, ego: np.ndarray, motions: 
         return None
     r = p[left][_icp_subset(int(left.sum()), c)]
     T0 = _displacement_start(p[left], flow[left], T_ego)
-    T, fitness, rmse, _ = _best_icp(r, box, tgt, surface, [T0], T_ego, c)
+    T, fitness, rmse, _ = _best_icp(r, tgt, surface, [T0], T_ego, c)
     if fitness < c.min_fitness or rmse > c.max_rmse_m:
         return None
     if _ego_explains(_score(r, T_ego, surface, c), fitness, rmse, len(r), c):

@@ -1,0 +1,264 @@
+"""Point-to-point ICP of small objects onto one target, compiled (numba), tree built once.
+
+The objects stage (:mod:`flowslam.sceneflow.refinement.objects`) registers each object
+from up to 7 starts, each coarse to fine (3 stages), onto the same target box of scan k.
+Open3D's ``registration_icp`` builds a KD-tree over its target at every call and holds
+Python's GIL while it runs; here the box gets one KD-tree (:class:`IcpTarget`) that all
+starts and stages share, and the iterations run compiled with the GIL released (the
+objects stage then overlaps with the other thread's work).
+
+The iteration is Open3D's point-to-point rule (``TransformationEstimationPointToPoint``,
+``ICPConvergenceCriteria``), step for step: the source is moved by the start transform;
+each point's correspondence is its nearest target point within ``max_dist``; fitness =
+matched share of the source, inlier RMSE = root mean squared distance of the matches;
+each iteration solves the rigid motion of the matches in closed form (Umeyama's SVD
+without scale; identity when nothing matched), moves the source by it and composes
+``T <- update @ T``, and stops after ``max_iterations`` or when fitness and RMSE each
+changed by less than the relative thresholds. Tests compare it with Open3D's.
+
+Frames: source points in sensor frame ``k-1`` (m), target points in sensor frame ``k``
+(m); a transform maps the source into the target frame (``T_k_{k-1}`` of the object).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = ["IcpTarget", "register"]
+
+LEAF_SIZE = 32
+"""Target points per KD-tree leaf."""
+
+
+
+@njit(cache=True, nogil=True)
+def _select(points, order, a, b, k, d):
+    """Reorders ``order[a:b]`` so that ``order[k]`` holds the point with the k-th smallest
+    coordinate ``d``, smaller or equal ones before it, larger or equal ones after it
+    (quickselect, median-of-three pivots)."""
+    lo, hi = a, b - 1
+    while lo < hi:
+        m = (lo + hi) // 2
+        x, y, z = points[order[lo], d], points[order[m], d], points[order[hi], d]
+        pivot = max(min(x, y), min(max(x, y), z))
+        i, j = lo, hi
+        while i <= j:
+            while points[order[i], d] < pivot:
+                i += 1
+            while points[order[j], d] > pivot:
+                j -= 1
+            if i <= j:
+                order[i], order[j] = order[j], order[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            return
+
+
+@njit(cache=True, nogil=True)
+def _build(points):
+    """KD-tree over (N,3) ``points``: (points in tree order, their original indices, and per
+    node its first and past-the-end point, split axis (-1: leaf), children, and bounding box
+    corners (nodes, 3))."""
+    n = points.shape[0]
+    order = np.arange(n)
+    capacity = 4 * (n // LEAF_SIZE + 1) + 1  # leaves hold > LEAF_SIZE / 2 points: nodes < n / 6 * 2
+    start = np.empty(capacity, np.int64)
+    end = np.empty(capacity, np.int64)
+    axis = np.full(capacity, -1, np.int64)
+    left = np.full(capacity, -1, np.int64)
+    right = np.full(capacity, -1, np.int64)
+    lo = np.zeros((capacity, 3))
+    hi = np.zeros((capacity, 3))
+    start[0], end[0] = 0, n
+    count = 1
+    stack = [0]
+    while len(stack) > 0:
+        node = stack.pop()
+        a, b = start[node], end[node]
+        if b == a:
+            continue
+        for d in range(3):
+            lo[node, d] = hi[node, d] = points[order[a], d]
+        for i in range(a + 1, b):
+            for d in range(3):
+                v = points[order[i], d]
+                if v < lo[node, d]:
+                    lo[node, d] = v
+                elif v > hi[node, d]:
+                    hi[node, d] = v
+        d = int(np.argmax(hi[node] - lo[node]))
+        if b - a <= LEAF_SIZE or hi[node, d] <= lo[node, d]:  # a leaf (all points equal: however many)
+            continue
+        mid = (a + b) // 2
+        _select(points, order, a, b, mid, d)
+        axis[node] = d
+        left[node], right[node] = count, count + 1
+        start[count], end[count], start[count + 1], end[count + 1] = a, mid, mid, b
+        stack.append(count)
+        stack.append(count + 1)
+        count += 2
+    ordered = np.empty((n, 3))
+    for i in range(n):
+        ordered[i] = points[order[i]]
+    return ordered, order, start[:count], end[:count], axis[:count], left[:count], right[:count], lo[:count], hi[:count]
+
+
+@njit(cache=True, nogil=True)
+def _box_sq(q, lo, hi, node):
+    """Squared distance from ``q`` to the bounding box of ``node`` (0 inside)."""
+    total = 0.0
+    for d in range(3):
+        if q[d] < lo[node, d]:
+            e = lo[node, d] - q[d]
+            total += e * e
+        elif q[d] > hi[node, d]:
+            e = q[d] - hi[node, d]
+            total += e * e
+    return total
+
+
+@njit(cache=True, nogil=True)
+def _nearest(q, max_sq, hint, ordered, start, end, axis, left, right, lo, hi, stack):
+    """Index (into ``ordered``) of the nearest tree point to ``q`` closer than sqrt(max_sq),
+    and its squared distance; (-1, max_sq) when none. ``hint`` (an index, or -1): a likely
+    answer (the point's previous match), whose distance bounds the search from the start."""
+    best, best_sq = -1, max_sq
+    if hint >= 0:
+        sq = (ordered[hint, 0] - q[0]) ** 2 + (ordered[hint, 1] - q[1]) ** 2 + (ordered[hint, 2] - q[2]) ** 2
+        if sq < best_sq:
+            best, best_sq = hint, sq
+    top = 0
+    stack[0] = 0
+    while top >= 0:
+        node = stack[top]
+        top -= 1
+        if _box_sq(q, lo, hi, node) >= best_sq:  # nothing in it is nearer
+            continue
+        d = axis[node]
+        if d < 0:
+            for i in range(start[node], end[node]):
+                sq = (ordered[i, 0] - q[0]) ** 2 + (ordered[i, 1] - q[1]) ** 2 + (ordered[i, 2] - q[2]) ** 2
+                if sq < best_sq:
+                    best, best_sq = i, sq
+            continue
+        l, r = left[node], right[node]
+        if q[d] - hi[l, d] <= lo[r, d] - q[d]:  # nearer the left child: visit it first (pushed last)
+            l, r = r, l
+        top += 1
+        stack[top] = l
+        top += 1
+        stack[top] = r
+    return best, best_sq
+
+
+@njit(cache=True, nogil=True)
+def _match(x, max_dist, ordered, start, end, axis, left, right, lo, hi, stack, src, dst, hints):
+    """Nearest target point within ``max_dist`` of each row of ``x`` (Open3D's
+    correspondences): fills ``src`` / ``dst`` (matched source row, ordered target row);
+    returns (matches, fitness, inlier RMSE). ``hints`` (per row: its previous match or -1)
+    start each search and are updated."""
+    m, total = 0, 0.0
+    max_sq = max_dist * max_dist
+    for i in range(x.shape[0]):
+        j, sq = _nearest(x[i], max_sq, hints[i], ordered, start, end, axis, left, right, lo, hi, stack)
+        hints[i] = j
+        if j >= 0:
+            src[m], dst[m] = i, j
+            total += sq
+            m += 1
+    if m == 0:
+        return 0, 0.0, 0.0
+    return m, m / x.shape[0], np.sqrt(total / m)
+
+
+@njit(cache=True, nogil=True)
+def _rigid(x, ordered, src, dst, m):
+    """Least-squares rigid motion (4,4) taking ``x[src[:m]]`` onto ``ordered[dst[:m]]``
+    (Umeyama without scale); identity when ``m`` is 0."""
+    T = np.eye(4)
+    if m == 0:
+        return T
+    ms = np.zeros(3)
+    md = np.zeros(3)
+    for i in range(m):
+        for r in range(3):
+            ms[r] += x[src[i], r]
+            md[r] += ordered[dst[i], r]
+    ms /= m
+    md /= m
+    sigma = np.zeros((3, 3))
+    for i in range(m):
+        for r in range(3):
+            b = ordered[dst[i], r] - md[r]
+            for c in range(3):
+                sigma[r, c] += b * (x[src[i], c] - ms[c])
+    sigma /= m
+    U, _, Vt = np.linalg.svd(sigma)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    T[:3, :3] = R
+    T[:3, 3] = md - R @ ms
+    return T
+
+
+@njit(cache=True, nogil=True)
+def _moved(T, x):
+    """``x`` (N,3) moved by the 4x4 ``T``."""
+    out = np.empty_like(x)
+    for i in range(x.shape[0]):
+        for r in range(3):
+            out[i, r] = T[r, 0] * x[i, 0] + T[r, 1] * x[i, 1] + T[r, 2] * x[i, 2] + T[r, 3]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _register(p, T, stages, max_iterations, relative_fitness, relative_rmse,
+              ordered, start, end, axis, left, right, lo, hi):
+    n = p.shape[0]
+    src = np.empty(n, np.int64)
+    dst = np.empty(n, np.int64)
+    stack = np.empty(2 * len(start) + 2, np.int64)
+    hints = np.full(n, -1, np.int64)
+    for max_dist in stages:
+        x = _moved(T, p)
+        m, fitness, rmse = _match(x, max_dist, ordered, start, end, axis, left, right, lo, hi, stack, src, dst, hints)
+        for _ in range(max_iterations):
+            update = _rigid(x, ordered, src, dst, m)
+            T = update @ T
+            x = _moved(update, x)
+            previous_fitness, previous_rmse = fitness, rmse
+            m, fitness, rmse = _match(x, max_dist, ordered, start, end, axis, left, right, lo, hi, stack, src, dst, hints)
+            if abs(previous_fitness - fitness) < relative_fitness and abs(previous_rmse - rmse) < relative_rmse:
+                break
+    return T
+
+
+class IcpTarget:
+    """A target cloud (N,3, m) with its KD-tree, built once and shared by every
+    :func:`register` onto it."""
+
+    def __init__(self, points: np.ndarray):
+        self.points = np.ascontiguousarray(points, dtype=np.float64)
+        self._tree = _build(self.points)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def register(p: np.ndarray, target: IcpTarget, T: np.ndarray, stages, max_iterations: int,
+             relative_fitness: float = 1e-6, relative_rmse: float = 1e-6) -> np.ndarray:
+    """Point-to-point ICP of ``p`` (N,3) onto ``target`` from ``T`` (4,4), once per
+    correspondence distance in ``stages`` (m, coarse to fine), each stage at most
+    ``max_iterations`` iterations of Open3D's rule (module doc); returns the final 4x4 T."""
+    ordered, _, start, end, axis, left, right, lo, hi = target._tree
+    return _register(np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(T, dtype=np.float64),
+                     np.asarray(stages, dtype=np.float64), int(max_iterations), float(relative_fitness),
+                     float(relative_rmse), ordered, start, end, axis, left, right, lo, hi)
