@@ -158,3 +158,19 @@ def test_in_bounds_equals_the_all_axes_test_including_points_on_the_bounds():
     expected = np.all((points >= lo) & (points <= hi), axis=1)
     assert np.array_equal(in_bounds(points, lo, hi), expected)
     assert expected[:20].all() and not expected[20:30].any() and 0 < expected.sum() < len(points)
+
+
+def test_gathered_covariances_equal_numpy_per_neighbourhood():
+    """``neighbourhood_covariances`` (compiled sums) equals ``np.cov`` (population) of each
+    point's neighbours within the radius, at most k of them, the point itself included."""
+    from flowslam.sceneflow.refinement.clusters import neighbourhood_covariances
+
+    points = _street(7, 4000)
+    tree = cKDTree(points)
+    idx = np.random.default_rng(8).choice(len(points), 300, replace=False)
+    cov, count = neighbourhood_covariances(tree, points, idx, 0.8, k=12)
+    for row, i in enumerate(idx):
+        dist, nb = tree.query(points[i], k=12, distance_upper_bound=0.8)
+        near = points[nb[np.isfinite(dist)]]
+        assert count[row] == len(near) >= 1
+        np.testing.assert_allclose(cov[row], np.cov(near.T, bias=True).reshape(3, 3), atol=1e-12)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from flowslam.sceneflow.refinement.compiled_neighbourhoods import gathered_covariances
 from flowslam.sceneflow.refinement.symmetric3 import smallest_eigenvectors, symmetric_eigenvalues
 
 __all__ = [
@@ -172,13 +173,7 @@ def neighbourhood_covariances(tree, points: np.ndarray, idx: np.ndarray, radius:
     within ``radius`` (``tree``: a cKDTree over ``points``; each point is its own neighbour),
     and their neighbour counts (len(idx),)."""
     dist, nb = tree.query(points[idx], k=min(k, len(points)), distance_upper_bound=radius)
-    dist, nb = dist.reshape(len(idx), -1), nb.reshape(len(idx), -1)
-    valid = np.isfinite(dist)
-    pts = points[np.where(valid, nb, 0)] * valid[..., None]
-    n = valid.sum(axis=1)
-    mean = pts.sum(axis=1) / n[:, None]
-    cov = np.matmul(pts.transpose(0, 2, 1), pts) / n[:, None, None] - mean[:, :, None] * mean[:, None, :]
-    return cov, n
+    return gathered_covariances(points, nb.reshape(len(idx), -1), dist.reshape(len(idx), -1))
 
 
 def plane_normals(tree, points: np.ndarray, idx: np.ndarray, radius: float, k: int = 20) -> np.ndarray:
