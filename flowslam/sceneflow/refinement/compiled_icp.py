@@ -28,8 +28,7 @@ from numba import njit
 __all__ = ["IcpTarget", "register"]
 
 LEAF_SIZE = 32
-"""Target points per KD-tree leaf."""
-
+"""Target points per KD-tree leaf (at most, unless they all coincide)."""
 
 
 @njit(cache=True, nogil=True)
@@ -67,7 +66,7 @@ def _build(points):
     corners (nodes, 3))."""
     n = points.shape[0]
     order = np.arange(n)
-    capacity = 4 * (n // LEAF_SIZE + 1) + 1  # leaves hold > LEAF_SIZE / 2 points: nodes < n / 6 * 2
+    capacity = 4 * (n // LEAF_SIZE + 1) + 1  # a split leaves >= LEAF_SIZE / 2 points per leaf: < 4 n / LEAF_SIZE nodes
     start = np.empty(capacity, np.int64)
     end = np.empty(capacity, np.int64)
     axis = np.full(capacity, -1, np.int64)

@@ -10,10 +10,10 @@ fewer than ``min_above_ground_points`` points above the local ground is road (st
 ICP: a ring's arc on flat ground slides along itself under ICP). A cluster wider than
 ``split_extent_m`` is also registered as its ``instance_cell_m`` components, which replace it
 when they explain ``split_gain`` more of it (a queue or a crowd merged into one cluster).
-Each object with at least ``min_points``
-points is registered to scan ``k`` by point-to-point ICP (Open3D's rule, compiled:
-:mod:`~flowslam.sceneflow.refinement.compiled_icp`; coarse-to-fine correspondence distances), starting from the ego rotation and the median network
-displacement of its points. Accepted objects (ICP fitness and RMSE within bounds)
+Each object with at least ``min_points`` points is registered to scan ``k`` by
+point-to-point ICP (Open3D's rule, compiled: :mod:`~flowslam.sceneflow.refinement.compiled_icp`;
+coarse-to-fine correspondence distances), starting from the ego rotation and the median
+network displacement of its points. Accepted objects (ICP fitness and RMSE within bounds)
 get the rigid flow of their own motion (polished by one point-to-plane ICP,
 ``plane_stage_radius_m``, kept when it fits as tightly, and made planar,
 ``planar_motion``; of several ICP starts the first, the network's or the track's
@@ -155,8 +155,9 @@ FINE_STAGE_SLACK_M = 0.5
 """How far (m) the point-to-plane polish may move an object beyond its correspondence
 distance and still see every target point it could match (:func:`_polish`)."""
 
+
 def _cloud(points: np.ndarray):
-    """Open3D point cloud of (N,3) points (built once per object, shared by its ICP starts)."""
+    """Open3D point cloud of (N,3) points (for the point-to-plane polish)."""
     import open3d as o3d
 
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
