@@ -248,9 +248,6 @@ class IcpTarget:
         self.points = np.ascontiguousarray(points, dtype=np.float64)
         self._tree = _build(self.points)
 
-    def __len__(self) -> int:
-        return len(self.points)
-
 
 def register(p: np.ndarray, target: IcpTarget, T: np.ndarray, stages, max_iterations: int,
              relative_fitness: float = 1e-6, relative_rmse: float = 1e-6) -> np.ndarray:

@@ -104,12 +104,11 @@ def _register(p: np.ndarray, target: IcpTarget, T: np.ndarray, c: ObjectRefineme
     return register(p, target, T, c.correspondence_m, c.max_iterations, ICP_RELATIVE_CHANGE, ICP_RELATIVE_CHANGE)
 
 
-def _near_landing(box: np.ndarray, p: np.ndarray, T: np.ndarray, max_dist: float,
-                  slack: float | None = None) -> np.ndarray:
-    """The target points of ``box`` within ``max_dist`` + ``slack`` (default
-    ``FINE_STAGE_SLACK_M``) of the bounding box of ``T p``."""
+def _near_landing(box: np.ndarray, p: np.ndarray, T: np.ndarray, max_dist: float) -> np.ndarray:
+    """The target points of ``box`` within ``max_dist`` + ``FINE_STAGE_SLACK_M`` of the
+    bounding box of ``T p``."""
     landing = transform_points(T, p)
-    reach = max_dist + (FINE_STAGE_SLACK_M if slack is None else slack)
+    reach = max_dist + FINE_STAGE_SLACK_M
     return box[in_bounds(box, landing.min(axis=0) - reach, landing.max(axis=0) + reach)]
 
 
