@@ -174,3 +174,26 @@ def test_gathered_covariances_equal_numpy_per_neighbourhood():
         near = points[nb[np.isfinite(dist)]]
         assert count[row] == len(near) >= 1
         np.testing.assert_allclose(cov[row], np.cov(near.T, bias=True).reshape(3, 3), atol=1e-12)
+
+
+@pytest.mark.parametrize("radius, k", [(1.0, 20), (0.3, 20), (2.0, 4)])
+def test_compiled_normals_equal_the_numpy_closed_forms(radius, k):
+    """``plane_normals`` (one compiled pass per neighbourhood) gives the normals of the NumPy
+    closed forms (``symmetric3``) on the covariances of the same neighbourhoods: NaN on the
+    same points (fewer than 3 neighbours, or none at all), else the same unit vector to
+    1e-12 (the compiled ``arccos`` and ``cos`` may round the last bit differently)."""
+    from flowslam.sceneflow.refinement.clusters import neighbourhood_covariances
+    from flowslam.sceneflow.refinement.symmetric3 import smallest_eigenvectors, symmetric_eigenvalues
+
+    rng = np.random.default_rng(9)
+    points = np.vstack([_street(9, 6000), rng.uniform(-60, 60, (40, 3))])  # and some isolated points
+    tree = cKDTree(points)
+    idx = rng.choice(len(points), 2000, replace=False)
+    cov, count = neighbourhood_covariances(tree, points, idx, radius, k)
+    expected = smallest_eigenvectors(cov, symmetric_eigenvalues(cov)[:, 0])
+    expected[count < 3] = np.nan
+    got = plane_normals(tree, points, idx, radius, k)
+    missing = np.isnan(expected).any(axis=1)
+    assert 0 < missing.sum() < len(idx) and np.array_equal(np.isnan(got).any(axis=1), missing)
+    np.testing.assert_allclose(got[~missing], expected[~missing], atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(got[~missing], axis=1), 1.0, atol=1e-12)

@@ -16,8 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from flowslam.sceneflow.refinement.compiled_neighbourhoods import gathered_covariances
-from flowslam.sceneflow.refinement.symmetric3 import smallest_eigenvectors, symmetric_eigenvalues
+from flowslam.sceneflow.refinement.compiled_neighbourhoods import gathered_covariances, neighbourhood_normals
 
 __all__ = [
     "LocalGround",
@@ -172,18 +171,22 @@ def neighbourhood_covariances(tree, points: np.ndarray, idx: np.ndarray, radius:
     """(len(idx),3,3) covariances (m^2) of the (at most ``k``) neighbours of ``points[idx]``
     within ``radius`` (``tree``: a cKDTree over ``points``; each point is its own neighbour),
     and their neighbour counts (len(idx),)."""
-    dist, nb = tree.query(points[idx], k=min(k, len(points)), distance_upper_bound=radius)
-    return gathered_covariances(points, nb.reshape(len(idx), -1), dist.reshape(len(idx), -1))
+    return gathered_covariances(points, *_neighbourhoods(tree, points, idx, radius, k))
 
 
 def plane_normals(tree, points: np.ndarray, idx: np.ndarray, radius: float, k: int = 20) -> np.ndarray:
     """(len(idx),3) unit normals of ``points[idx]``: smallest principal axis of their (at
     most ``k``) neighbours within ``radius`` (``tree``: a cKDTree over ``points``); a point
     with < 3 neighbours gets NaN, so does one without a unique smallest axis (a line)."""
-    cov, n = neighbourhood_covariances(tree, points, idx, radius, k)
-    normals = smallest_eigenvectors(cov, symmetric_eigenvalues(cov)[:, 0])
-    normals[n < 3] = np.nan
-    return normals
+    return neighbourhood_normals(points, *_neighbourhoods(tree, points, idx, radius, k))[0]
+
+
+def _neighbourhoods(tree, points: np.ndarray, idx: np.ndarray, radius: float, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(neighbour indices, distances), each (len(idx), min(k, len(points))): SciPy's query of
+    the at most ``k`` neighbours of ``points[idx]`` within ``radius`` (inf / len(points)
+    where there are fewer)."""
+    dist, nb = tree.query(points[idx], k=min(k, len(points)), distance_upper_bound=radius)
+    return nb.reshape(len(idx), -1), dist.reshape(len(idx), -1)
 
 
 class ScanSurface:

@@ -1,9 +1,15 @@
-"""Covariances of point neighbourhoods from a KD-tree query's result, compiled (numba).
+"""Covariances and normals of point neighbourhoods from a KD-tree query's result, compiled (numba).
 
 :func:`flowslam.sceneflow.refinement.clusters.neighbourhood_covariances` asks SciPy's
 KD-tree for up to k neighbours of each point; gathering them and summing their outer
 products with NumPy builds (N, k, 3) temporaries and a batched product of tiny matrices,
 which took more time than the query. Here each neighbourhood is summed in one pass.
+
+:func:`neighbourhood_normals` goes on to each neighbourhood's tangent-plane normal with the
+closed forms of :mod:`flowslam.sceneflow.refinement.symmetric3` (smallest eigenvalue of
+the characteristic cubic, eigenvector as the longest cross product of two rows), one
+neighbourhood at a time: the objects stage asks for the normals of a few dozen points at
+a time, where the ~20 NumPy calls of those closed forms cost more than the arithmetic.
 
 Units are those of the points (covariances in their square).
 """
@@ -13,43 +19,91 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["gathered_covariances"]
+__all__ = ["gathered_covariances", "neighbourhood_normals"]
+
+
+@njit(cache=True, nogil=True)
+def _covariance(points, neighbours, dist, i):
+    """(count, xx, yy, zz, xy, xz, yz): the size and the covariance entries of neighbourhood
+    ``i`` (the entries undefined when the count is 0)."""
+    sx = sy = sz = xx = xy = xz = yy = yz = zz = 0.0
+    c = 0
+    for j in range(neighbours.shape[1]):
+        if dist[i, j] < np.inf:
+            p = neighbours[i, j]
+            x, y, z = points[p, 0], points[p, 1], points[p, 2]
+            sx += x
+            sy += y
+            sz += z
+            xx += x * x
+            xy += x * y
+            xz += x * z
+            yy += y * y
+            yz += y * z
+            zz += z * z
+            c += 1
+    if c == 0:
+        return 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    mx, my, mz = sx / c, sy / c, sz / c
+    return c, xx / c - mx * mx, yy / c - my * my, zz / c - mz * mz, xy / c - mx * my, xz / c - mx * mz, yz / c - my * mz
 
 
 @njit(cache=True, nogil=True)
 def _gathered(points, neighbours, dist):
-    n, k = neighbours.shape
+    n = neighbours.shape[0]
     cov = np.empty((n, 3, 3))
     count = np.zeros(n, np.int64)
     for i in range(n):
-        sx = sy = sz = xx = xy = xz = yy = yz = zz = 0.0
-        c = 0
-        for j in range(k):
-            if dist[i, j] < np.inf:
-                p = neighbours[i, j]
-                x, y, z = points[p, 0], points[p, 1], points[p, 2]
-                sx += x
-                sy += y
-                sz += z
-                xx += x * x
-                xy += x * y
-                xz += x * z
-                yy += y * y
-                yz += y * z
-                zz += z * z
-                c += 1
+        c, a, b, cc, d, f, e = _covariance(points, neighbours, dist, i)
         count[i] = c
         if c == 0:
             cov[i] = np.nan
             continue
-        mx, my, mz = sx / c, sy / c, sz / c
-        cov[i, 0, 0] = xx / c - mx * mx
-        cov[i, 1, 1] = yy / c - my * my
-        cov[i, 2, 2] = zz / c - mz * mz
-        cov[i, 0, 1] = cov[i, 1, 0] = xy / c - mx * my
-        cov[i, 0, 2] = cov[i, 2, 0] = xz / c - mx * mz
-        cov[i, 1, 2] = cov[i, 2, 1] = yz / c - my * mz
+        cov[i, 0, 0], cov[i, 1, 1], cov[i, 2, 2] = a, b, cc
+        cov[i, 0, 1] = cov[i, 1, 0] = d
+        cov[i, 0, 2] = cov[i, 2, 0] = f
+        cov[i, 1, 2] = cov[i, 2, 1] = e
     return cov, count
+
+
+@njit(cache=True, nogil=True)
+def _smallest_eigenvalue(a, b, c, d, e, f):
+    """Smallest eigenvalue of the symmetric matrix [[a, d, f], [d, b, e], [f, e, c]]:
+    :func:`~flowslam.sceneflow.refinement.symmetric3.symmetric_eigenvalues`'s formula."""
+    m = (a + b + c) / 3
+    am, bm, cm = a - m, b - m, c - m
+    p2 = (am * am + bm * bm + cm * cm + 2 * (d * d + e * e + f * f)) / 6
+    p = np.sqrt(p2)
+    det = am * (bm * cm - e * e) - d * (d * cm - e * f) + f * (d * e - bm * f)
+    r = det / (2 * p2 * p) if p2 > 0 else 0.0  # p2 == 0: a multiple of I
+    phi = np.arccos(min(max(r, -1.0), 1.0)) / 3
+    return m + 2 * p * np.cos(phi + 2 * np.pi / 3)
+
+
+@njit(cache=True, nogil=True)
+def _normals(points, neighbours, dist):
+    n = neighbours.shape[0]
+    normals = np.empty((n, 3))
+    count = np.zeros(n, np.int64)
+    for i in range(n):
+        c, a, b, cc, d, f, e = _covariance(points, neighbours, dist, i)
+        count[i] = c
+        normals[i] = np.nan
+        if c < 3:
+            continue
+        s = _smallest_eigenvalue(a, b, cc, d, e, f)
+        # rows of cov - s I; the longest cross product of two of them (first of equals)
+        r0, r1, r2 = (a - s, d, f), (d, b - s, e), (f, e, cc - s)
+        best, longest = (0.0, 0.0, 0.0), 0.0
+        for u, v in ((r0, r1), (r0, r2), (r1, r2)):
+            x = (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+            length = x[0] * x[0] + x[1] * x[1] + x[2] * x[2]
+            if length > longest:
+                best, longest = x, length
+        if longest > 0:  # else cov - s I is 0: no unique axis (NaN, as the NumPy form gives)
+            norm = np.sqrt(longest)
+            normals[i, 0], normals[i, 1], normals[i, 2] = best[0] / norm, best[1] / norm, best[2] / norm
+    return normals, count
 
 
 def gathered_covariances(points: np.ndarray, neighbours: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -59,3 +113,14 @@ def gathered_covariances(points: np.ndarray, neighbours: np.ndarray, dist: np.nd
     neighbourhood without points gets NaN."""
     return _gathered(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(neighbours, dtype=np.int64),
                      np.ascontiguousarray(dist, dtype=np.float64))
+
+
+def neighbourhood_normals(points: np.ndarray, neighbours: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N,3) unit normals of the neighbourhoods that a KD-tree query gave (``neighbours``,
+    ``dist`` as in :func:`gathered_covariances`): the eigenvector of each covariance's
+    smallest eigenvalue (sign arbitrary), NaN where a neighbourhood has fewer than 3 points
+    or no unique smallest axis; and each neighbourhood's size (N,). The closed forms of
+    :mod:`~flowslam.sceneflow.refinement.symmetric3` (to the last bits of ``arccos`` and
+    ``cos``, which NumPy and numba may round differently)."""
+    return _normals(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(neighbours, dtype=np.int64),
+                    np.ascontiguousarray(dist, dtype=np.float64))
