@@ -18,7 +18,10 @@ loop closing + mapping + output sinks, no files written), ``--runs`` times each,
 alternating: ``ssf`` with the next pair's network and static refinement in a background
 thread (``ssf.lookahead``, the default), ``ssf`` in one thread, and ``kiss-icp`` (the rate
 the issue compares against). A rate is frames after the first / wall time of the loop;
-the median per-frame time is printed beside it.
+the median per-frame time is printed beside it, and the CPU time the whole process (every
+thread) spent per frame with the cores it kept busy on average (CPU time / wall time): with
+``ssf.lookahead`` on two cores, a rate far below 2 / (CPU per frame) says the threads wait
+for each other; a rate near it says only less work per frame makes it faster.
 
     python tools/bench_ssf_pipeline.py [SEQUENCE] [--runs 3] [--threads N] [--frames 16] [--skip-stages]
         [--weights W] [--from F]
@@ -91,8 +94,9 @@ END_TO_END = {
 
 def run_end_to_end(sequence: Path, n_frames: int, frontend: str, options: dict, network: dict, first: int = 1):
     """(frames/s from frame ``first`` (>= 1) on, per-frame seconds, per-frame ms the
-    frontend waited for the stages run ahead (empty without them)) of the run loop on
-    ``sequence``'s first ``n_frames``; every frame runs, only frames ``first``.. count."""
+    frontend waited for the stages run ahead (empty without them), CPU ms per frame of the
+    whole process (every thread) over the same frames) of the run loop on ``sequence``'s
+    first ``n_frames``; every frame runs, only frames ``first``.. count."""
     from flowslam.config import PipelineConfig
     from flowslam.datasets import open_dataset
     from flowslam.pipeline import drive
@@ -106,12 +110,14 @@ def run_end_to_end(sequence: Path, n_frames: int, frontend: str, options: dict, 
     slam = Slam(config)
     laps = []
     result = drive(slam, dataset, range(min(n_frames, len(dataset))),
-                   on_frame=lambda k, seconds: laps.append((time.perf_counter(), seconds)))
+                   on_frame=lambda k, seconds: laps.append((time.perf_counter(), time.process_time(), seconds)))
     if result.error is not None:
         raise result.error
+    counted = len(laps) - first
     wall = laps[-1][0] - laps[first - 1][0]  # from the end of frame first-1 to the end of the last
+    cpu_ms = 1e3 * (laps[-1][1] - laps[first - 1][1]) / counted
     waits = [stats["ahead_wait_ms"] for stats in result.frontend_stats[first:] if "ahead_wait_ms" in stats]
-    return (len(laps) - first) / wall, [seconds for _, seconds in laps[first:]], waits
+    return counted / wall, [seconds for _, _, seconds in laps[first:]], waits, cpu_ms
 
 
 def main() -> None:
@@ -150,17 +156,22 @@ def main() -> None:
     rates: dict[str, list[float]] = {name: [] for name in END_TO_END}
     laps: dict[str, list[float]] = {name: [] for name in END_TO_END}
     waits: dict[str, list[float]] = {name: [] for name in END_TO_END}
+    cpu: dict[str, list[float]] = {name: [] for name in END_TO_END}
     for _ in range(args.runs):  # alternating, so that the configurations share the load
         for name, (frontend, options) in END_TO_END.items():
-            rate, seconds, waited = run_end_to_end(args.sequence, args.frames, frontend, options, network, first)
+            rate, seconds, waited, cpu_ms = run_end_to_end(args.sequence, args.frames, frontend, options, network,
+                                                           first)
             rates[name].append(rate)
             laps[name] += seconds
             waits[name] += waited
+            cpu[name].append((cpu_ms, cpu_ms * rate / 1e3))  # CPU per frame, cores busy
     for name in END_TO_END:
         rate = statistics.median(rates[name])
         wait = f"; waited for the background {statistics.median(waits[name]):.0f} ms" if waits[name] else ""
+        cpu_ms, cores = (statistics.median(column) for column in zip(*cpu[name]))
         print(f"{'end to end ' + name:>28}: {rate:5.2f} frames/s (median of {args.runs} runs; per frame "
-              f"median {1e3 * statistics.median(laps[name]):.0f} ms{wait}), -b isam2 defaults")
+              f"median {1e3 * statistics.median(laps[name]):.0f} ms{wait}; CPU {cpu_ms:.0f} ms per frame, "
+              f"{cores:.2f} cores busy), -b isam2 defaults")
     ratio = statistics.median(rates["ssf lookahead"]) / statistics.median(rates["kiss-icp"])
     print(f"ssf (lookahead) / kiss-icp rate: {ratio:.2f}")
     print(f"load average after: {os.getloadavg()[0]:.2f}")
