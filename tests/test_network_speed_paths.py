@@ -70,6 +70,27 @@ def test_propagate_equals_voxel_mean_oracle():
     torch.testing.assert_close(out[rest], values[nearest], atol=0, rtol=0)
 
 
+@pytest.mark.parametrize("voxel_size, max_levels", [(0.25, 4), (1.0, 1), (0.1, 2)])
+def test_compiled_propagation_equals_the_torch_levels(monkeypatch, voxel_size, max_levels):
+    """The compiled voxel levels give the torch version's float32 numbers exactly: sampled
+    points keep theirs (a repeated sample: its last row), the others the mean of their
+    voxel at the first level that has one, the rest (far from any sample) the nearest
+    sampled point's."""
+    from flowslam.sceneflow.network import propagate as module
+
+    g = torch.Generator().manual_seed(2)
+    points = torch.cat([torch.rand(20000, 3, generator=g) * torch.tensor([60.0, 60.0, 5.0]) - 30.0,
+                        torch.tensor([[500.0, 500.0, 0.0], [-400.0, 3.0, 1.0]])])  # beyond every voxel level
+    sample_index = torch.sort(torch.randperm(20000, generator=g)[:1500]).values
+    sample_index = torch.cat([sample_index, sample_index[:50]])  # repeated samples
+    values = torch.randn(len(sample_index), 4, generator=g)
+    assert module._compiled(points, values)
+    got = propagate(points, sample_index, values, voxel_size=voxel_size, max_levels=max_levels)
+    monkeypatch.setattr(module, "_compiled", lambda *args: False)
+    expected = propagate(points, sample_index, values, voxel_size=voxel_size, max_levels=max_levels)
+    assert got.dtype == expected.dtype and torch.equal(got, expected)
+
+
 def _shipped_folded():
     return build_model(load_weights(shipped_weights())).fold_batchnorm()
 

@@ -5,13 +5,17 @@ point of the scan still needs a flow. ``propagate`` gives each unsampled point t
 output of the sampled points in its 3D voxel, trying voxels of ``voxel_size``, then
 4x larger, ... (0.25, 1, 4, 16 m by default), and the nearest sampled point for what
 is still left (isolated points far away). Sampled points keep their own outputs. Metres, any frame (both point sets
-in the same one); torch, device-agnostic (on CPU the binary search runs in NumPy, same result).
+in the same one); torch, device-agnostic. On CPU with float32 inputs (inference) the voxel
+levels run compiled (numba, :func:`_voxel_levels`): the same float32 arithmetic in the
+same order, so the same numbers, without the temporaries of the torch version (17 -> ~5 ms
+for a 64-beam scan on the 2-core VM).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import torch
+from numba import njit
 from torch import Tensor
 
 __all__ = ["random_subsample", "voxel_keys", "propagate"]
@@ -84,6 +88,15 @@ def propagate(
     if len(sample_index) == 0:
         return out
     flat = values.reshape(len(values), -1)
+    if _compiled(points, flat):
+        out_flat, left = _voxel_levels(points.numpy(), sample_index.numpy().astype(np.int64), flat.numpy(),
+                                       np.float32(voxel_size), max_levels, growth_log2)
+        out = torch.from_numpy(out_flat).view((N,) + values.shape[1:])
+        if len(left):
+            left = torch.from_numpy(left)
+            out_flat = out.view(N, -1)
+            out_flat[left] = flat[_nearest(points[left], points[sample_index])]
+        return out
     out_flat = out.view(N, -1)
     out_flat[sample_index] = flat
     todo = torch.ones(N, dtype=torch.bool, device=points.device)
@@ -109,3 +122,122 @@ def propagate(
     if len(left):
         out_flat[left] = flat[_nearest(points[left], points[sample_index])]
     return out
+
+
+def _compiled(points: Tensor, values: Tensor) -> bool:
+    """Whether :func:`propagate` may run its voxel levels compiled: contiguous float32 CPU
+    tensors that need no gradient (the compiled levels give none)."""
+    return (points.device.type == "cpu" and values.device.type == "cpu" and points.dtype == torch.float32
+            and values.dtype == torch.float32 and points.is_contiguous() and values.is_contiguous()
+            and not points.requires_grad and not values.requires_grad)
+
+
+@njit(cache=True, nogil=True)
+def _packed(q, shift):
+    """(N,) int64 key of the integer voxel coordinates ``q`` (N,3) >> ``shift`` (:func:`_pack`)."""
+    keys = np.empty(q.shape[0], np.int64)
+    top = (1 << 21) - 1
+    for i in range(q.shape[0]):
+        a = min(max((q[i, 0] >> shift) + _OFFSET, 0), top)
+        b = min(max((q[i, 1] >> shift) + _OFFSET, 0), top)
+        c = min(max((q[i, 2] >> shift) + _OFFSET, 0), top)
+        keys[i] = (a << 42) | (b << 21) | c
+    return keys
+
+
+_HASH = np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing: 2^64 / golden ratio, odd
+
+
+@njit(cache=True, nogil=True)
+def _table(n):
+    """An empty open-addressing hash table for up to ``n`` distinct non-negative keys:
+    (slot keys (-1: empty), slot values, shift of the hash)."""
+    bits = 4
+    while (1 << bits) < 2 * n:
+        bits += 1
+    return np.full(1 << bits, -1, np.int64), np.empty(1 << bits, np.int64), np.uint64(64 - bits)
+
+
+@njit(cache=True, nogil=True)
+def _insert(slot_keys, slot_values, shift, key, value):
+    """The value of ``key`` in the table, after giving it ``value`` if it had none."""
+    mask = slot_keys.shape[0] - 1
+    slot = np.int64((np.uint64(key) * _HASH) >> shift)
+    while slot_keys[slot] != -1:
+        if slot_keys[slot] == key:
+            return slot_values[slot]
+        slot = (slot + 1) & mask
+    slot_keys[slot] = key
+    slot_values[slot] = value
+    return value
+
+
+@njit(cache=True, nogil=True)
+def _find(slot_keys, slot_values, shift, key):
+    """Index of ``key`` in the keys of :func:`_table` (-1: not there)."""
+    mask = slot_keys.shape[0] - 1
+    slot = np.int64((np.uint64(key) * _HASH) >> shift)
+    while slot_keys[slot] != -1:
+        if slot_keys[slot] == key:
+            return slot_values[slot]
+        slot = (slot + 1) & mask
+    return -1
+
+
+@njit(cache=True, nogil=True)
+def _voxel_levels(points, sample_index, values, voxel_size, max_levels, growth_log2):
+    """:func:`propagate`'s voxel levels on float32 arrays (``voxel_size`` a float32): (the
+    (N, K) outputs, indices of the points still without one). Per level, the sampled values
+    are summed per voxel in sample order and divided by the count in float32, as the torch
+    version's ``index_add_`` and division do; voxels are found through a hash table of
+    their keys instead of a sorted key list."""
+    n_points, k = points.shape[0], values.shape[1]
+    out = np.zeros((n_points, k), np.float32)
+    todo = np.ones(n_points, np.bool_)
+    for row in range(sample_index.shape[0]):
+        for j in range(k):
+            out[sample_index[row], j] = values[row, j]
+        todo[sample_index[row]] = False
+    left = np.flatnonzero(todo)
+    q_ref = np.empty((sample_index.shape[0], 3), np.int64)
+    for row in range(sample_index.shape[0]):
+        for d in range(3):
+            q_ref[row, d] = np.int64(np.floor(points[sample_index[row], d] / voxel_size))
+    q_left = np.empty((left.shape[0], 3), np.int64)
+    for row in range(left.shape[0]):
+        for d in range(3):
+            q_left[row, d] = np.int64(np.floor(points[left[row], d] / voxel_size))
+    for level in range(max_levels):
+        if left.shape[0] == 0:
+            break
+        shift = growth_log2 * level
+        ref_keys = _packed(q_ref, shift)
+        slot_keys, slot_values, hash_shift = _table(ref_keys.shape[0])
+        voxel = np.empty(ref_keys.shape[0], np.int64)  # each sample's voxel, numbered as first met
+        count = 0
+        for row in range(ref_keys.shape[0]):
+            voxel[row] = _insert(slot_keys, slot_values, hash_shift, ref_keys[row], count)
+            if voxel[row] == count:
+                count += 1
+        sums = np.zeros((count, k), np.float32)
+        counts = np.zeros(count, np.float32)
+        for row in range(voxel.shape[0]):  # sample order, as index_add_
+            for j in range(k):
+                sums[voxel[row], j] += values[row, j]
+            counts[voxel[row]] += np.float32(1.0)
+        for v in range(count):
+            for j in range(k):
+                sums[v, j] /= counts[v]
+        left_keys = _packed(q_left, shift)
+        rest = 0
+        for row in range(left.shape[0]):
+            pos = _find(slot_keys, slot_values, hash_shift, left_keys[row])
+            if pos >= 0:
+                for j in range(k):
+                    out[left[row], j] = sums[pos, j]
+            else:
+                left[rest] = left[row]
+                q_left[rest] = q_left[row]
+                rest += 1
+        left, q_left = left[:rest], q_left[:rest]
+    return out, left
