@@ -93,3 +93,19 @@ def test_voxel_centroids_select_like_a_filtered_copy(far):
     everything = points[np.linalg.norm(points, axis=1) < 80.0]
     ref_all = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(everything)).voxel_down_sample(0.4).points)
     np.testing.assert_array_equal(_voxel_centroids(points, 0.4, 80.0), ref_all)
+
+
+@pytest.mark.parametrize("radius, max_nn", [(1.0, 20), (0.5, 20), (2.0, 40)])
+def test_covariances_equal_open3d(kitti_target, radius, max_nn):
+    """``_covariances`` (SciPy's query, compiled sums) gives Open3D's ``estimate_covariances``:
+    the same neighbours in the same order, so the same sums, and the identity below 3
+    neighbours (a few dozen isolated target points at 0.5 m)."""
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(kitti_target))
+    cloud.estimate_covariances(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
+    expected = np.asarray(cloud.covariances)
+    got = _covariances(kitti_target, radius, max_nn)
+    identity = (expected == np.eye(3)).all(axis=(1, 2))
+    assert identity.sum() > 0 and np.array_equal(identity, (got == np.eye(3)).all(axis=(1, 2)))
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
