@@ -81,56 +81,54 @@ _HEADER_ALLOWANCE = 1024
 
 
 def voxel_ids(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
-    """Group (N,3) points by voxel: ``(inverse (N,) voxel of each point, counts (V,))``.
+    """Group (N,3) points (N >= 1) by voxel: ``(inverse (N,) voxel of each point, counts (V,))``.
 
-    Vectorised: integer voxel coordinates packed into one int64 key (21 bits per
-    axis relative to the minimum), grouped by :func:`group_keys`. Spans beyond 2^21
-    voxels per axis fall back to ``np.unique(axis=0)``. Voxels are numbered in key order
-    (x, then y, then z).
+    Integer voxel coordinates packed into one int64 key (21 bits per axis relative to the
+    minimum), grouped by :func:`group_keys` (both compiled: :mod:`flowslam.compiled_voxels`).
+    Spans beyond 2^21 voxels per axis fall back to ``np.unique(axis=0)``. Voxels are
+    numbered in key order (x, then y, then z).
     """
-    keys = np.floor(points / voxel_size).astype(np.int64)
-    keys -= keys.min(axis=0)
-    if keys.size and keys.max() < (1 << 21):
-        return group_keys((keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2])
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    from flowslam.compiled_voxels import grouped_keys, packed_voxel_keys
+
+    keys, fits = packed_voxel_keys(points, voxel_size)
+    if fits:
+        return grouped_keys(keys)
+    ijk = np.floor(np.asarray(points, dtype=np.float64) / voxel_size).astype(np.int64)
+    _, inverse, counts = np.unique(ijk, axis=0, return_inverse=True, return_counts=True)
     return inverse.reshape(-1), counts
 
 
 def group_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(inverse (N,), counts (V,))`` of (N,) int64 ``keys``, groups numbered in key order:
-    what ``np.unique(keys, return_inverse=True, return_counts=True)`` returns, 2-3x faster
-    on scans (a stable sort -- timsort -- profits from the runs that a scan's ring order
-    leaves in the keys; ``np.unique`` uses quicksort)."""
+    what ``np.unique(keys, return_inverse=True, return_counts=True)`` returns, several times
+    faster on scans (compiled: one pass through a hash table, then a sort of the distinct
+    keys only; :mod:`flowslam.compiled_voxels`)."""
+    from flowslam.compiled_voxels import grouped_keys
+
     if len(keys) == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    order = np.argsort(keys, kind="stable")
-    ordered = keys[order]
-    first = np.empty(len(keys), dtype=bool)
-    first[0] = True
-    np.not_equal(ordered[1:], ordered[:-1], out=first[1:])
-    inverse = np.empty(len(keys), dtype=np.int64)
-    inverse[order] = np.cumsum(first) - 1
-    return inverse, np.diff(np.flatnonzero(np.r_[first, True]))
+    return grouped_keys(keys)
 
 
 def voxel_means(
     points: np.ndarray, voxel_size: float, values: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """``(centroids (M,3), mean of values per voxel (M,) or None)`` of the occupied
-    ``voxel_size`` voxels of (N,3) points (m) carrying (N,) ``values`` (vectorised)."""
+    ``voxel_size`` voxels of (N,3) points (m) carrying (N,) ``values``; voxels in
+    :func:`voxel_ids`' order, sums in point order."""
+    from flowslam.compiled_voxels import group_means
+
     points = np.asarray(points, dtype=np.float64)
     if not voxel_size > 0:
         raise ValueError(f"voxel_size must be > 0 (m), got {voxel_size}")
     if len(points) == 0:
         return np.zeros((0, 3)), None if values is None else np.zeros(0)
     inverse, counts = voxel_ids(points, voxel_size)
-    V = len(counts)
-    centroids = np.empty((V, 3))
-    for i in range(3):
-        centroids[:, i] = np.bincount(inverse, points[:, i], V) / counts
     if values is None:
-        return centroids, None
-    return centroids, np.bincount(inverse, np.asarray(values, dtype=np.float64).reshape(-1), V) / counts
+        return group_means(inverse, counts, points), None
+    columns = np.column_stack([points, np.asarray(values, dtype=np.float64).reshape(-1)])
+    means = group_means(inverse, counts, columns)
+    return np.ascontiguousarray(means[:, :3]), means[:, 3].copy()
 
 
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:

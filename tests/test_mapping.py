@@ -12,7 +12,16 @@ from scipy.spatial import cKDTree
 from flowslam import geometry
 from flowslam.frame import Frame
 from flowslam.interfaces import FrontendOutput
-from flowslam.mapping import MapCloud, StaticMapBuilder, group_keys, poses_by_index, voxel_downsample, write_point_cloud
+from flowslam.mapping import (
+    MapCloud,
+    StaticMapBuilder,
+    group_keys,
+    poses_by_index,
+    voxel_downsample,
+    voxel_ids,
+    voxel_means,
+    write_point_cloud,
+)
 
 from test_flow_odometry import street_scene
 from test_ground_truth_frontends import synthetic_sequence
@@ -35,6 +44,26 @@ def test_group_keys_numbers_groups_in_key_order_like_np_unique():
         _, inv, cnt = np.unique(keys.astype(np.int64), return_inverse=True, return_counts=True)
         got_inv, got_cnt = group_keys(keys.astype(np.int64))
         assert np.array_equal(got_inv, inv.reshape(-1)) and np.array_equal(got_cnt, cnt)
+
+
+@pytest.mark.parametrize("voxel_size", [0.05, 0.2, 0.75, 3.0])
+def test_voxel_means_equal_the_numpy_grouping(voxel_size):
+    """``voxel_ids`` / ``voxel_means`` (compiled) give what ``np.unique`` over the integer
+    voxel coordinates and ``np.bincount`` sums give, to the bit: voxels in key order,
+    points summed in their order; also on a span too wide to pack (the fallback)."""
+    rng = np.random.default_rng(4)
+    points = np.vstack([street_scene(rng, 20000), rng.uniform(-80, 80, (300, 3))])
+    values = rng.random(len(points))
+    ijk = np.floor(points / voxel_size).astype(np.int64)
+    _, inverse, counts = np.unique(ijk, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    expected = np.stack([np.bincount(inverse, points[:, i]) / counts for i in range(3)], axis=1)
+    got_inverse, got_counts = voxel_ids(points, voxel_size)
+    assert np.array_equal(got_inverse, inverse) and np.array_equal(got_counts, counts)
+    centroids, means = voxel_means(points, voxel_size, values)
+    assert np.array_equal(centroids, expected) and np.array_equal(means, np.bincount(inverse, values) / counts)
+    wide = np.array([[0.0, 0.0, 0.0], [1e6, 0.0, 0.0], [0.01, 0.0, 0.0]])  # 1e7 voxels of 0.1 m: the fallback
+    assert voxel_ids(wide, 0.1)[0].tolist() == [0, 1, 0]
 
 
 def test_static_scene_from_two_poses_coincides_and_dynamic_points_are_absent():
