@@ -68,6 +68,21 @@ def test_near_any_is_exact_against_a_kd_tree_query():
         assert 0 < got.sum() < len(got)  # both answers occur
 
 
+def test_near_any_falls_back_to_the_grid_and_tree_where_the_cubes_do_not_fit(monkeypatch):
+    """Queries spanning more cubes than the packed keys count take the dense grid and KD-tree
+    path, with the same exact answer (the limit lowered here to force it)."""
+    from flowslam.sceneflow.refinement import compiled_neighbourhoods
+
+    scan = ScanSurface(_street(3), max_range_m=40.0)
+    queries = _street(4, 3000)
+    queries += np.random.default_rng(5).normal(scale=0.2, size=queries.shape)
+    expected = np.isfinite(cKDTree(scan.points).query(queries, distance_upper_bound=0.25)[0])
+    assert compiled_neighbourhoods.near_any_points(scan.points, queries, 0.25) is not None
+    monkeypatch.setattr(compiled_neighbourhoods, "MAX_CELLS_PER_AXIS", 10)
+    assert compiled_neighbourhoods.near_any_points(scan.points, queries, 0.25) is None
+    np.testing.assert_array_equal(scan.near_any(queries, 0.25), expected)
+
+
 def test_scan_surface_box_query_equals_a_mask():
     scan = ScanSurface(_street(5), max_range_m=40.0)
     rng = np.random.default_rng(5)

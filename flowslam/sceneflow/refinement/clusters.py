@@ -16,7 +16,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from flowslam.sceneflow.refinement.compiled_neighbourhoods import gathered_covariances, neighbourhood_normals
+from flowslam.sceneflow.refinement.compiled_neighbourhoods import (
+    gathered_covariances,
+    near_any_points,
+    neighbourhood_normals,
+)
 
 __all__ = [
     "LocalGround",
@@ -229,11 +233,16 @@ class ScanSurface:
     def near_any(self, x: np.ndarray, radius: float) -> np.ndarray:
         """(M,) bool: some point of the scan lies within ``radius`` of each query ``x`` (M,3).
 
-        Exact. Queries sharing a voxel of edge ``radius / sqrt(3)`` with a scan point are
+        Exact: :func:`~flowslam.sceneflow.refinement.compiled_neighbourhoods.near_any_points`
+        (the scan bucketed by cube of edge ``radius``). Where the queries span too many such
+        cubes: queries sharing a voxel of edge ``radius / sqrt(3)`` with a scan point are
         within ``radius`` of it (the voxel's diagonal); only the others search the KD-tree."""
         hit = np.zeros(len(x), dtype=bool)
         if len(x) == 0 or len(self.points) == 0:
             return hit
+        near = near_any_points(self.points, x, radius)
+        if near is not None:
+            return near
         cell = radius / _SQRT3 * (1.0 - 1e-9)
         lo, hi = x.min(axis=0), x.max(axis=0)
         shape = dense_grid_shape(lo, hi, cell)

@@ -11,6 +11,11 @@ the characteristic cubic, eigenvector as the longest cross product of two rows),
 neighbourhood at a time: the objects stage asks for the normals of a few dozen points at
 a time, where the ~20 NumPy calls of those closed forms cost more than the arithmetic.
 
+:func:`near_any_points` answers "is some scan point within r of each query?" from a hash
+table of r-sized cubes: the off-surface test of the geometric movers asks it for ~50k
+points per scan pair, where a dense voxel grid over the queries' box cost more to clear
+than the queries did.
+
 Units are those of the points (covariances in their square).
 """
 
@@ -19,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["gathered_covariances", "neighbourhood_normals"]
+__all__ = ["gathered_covariances", "near_any_points", "neighbourhood_normals"]
 
 
 @njit(cache=True, nogil=True)
@@ -124,3 +129,114 @@ def neighbourhood_normals(points: np.ndarray, neighbours: np.ndarray, dist: np.n
     ``cos``, which NumPy and numba may round differently)."""
     return _normals(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(neighbours, dtype=np.int64),
                     np.ascontiguousarray(dist, dtype=np.float64))
+
+
+_HASH = np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing: 2^64 / golden ratio, odd
+
+
+@njit(cache=True, nogil=True)
+def _slot(slot_keys, key, shift, mask):
+    """The slot of ``key`` in an open-addressing table, or the empty slot (-1) where it would go."""
+    slot = np.int64((np.uint64(key) * _HASH) >> shift)
+    while slot_keys[slot] != -1 and slot_keys[slot] != key:
+        slot = (slot + 1) & mask
+    return slot
+
+
+@njit(cache=True, nogil=True)
+def _cell_key(p, lo, cell):
+    """Packed int64 key (21 bits per axis) of the ``cell``-sized cube holding ``p``, counted from ``lo``."""
+    return ((np.int64(np.floor((p[0] - lo[0]) / cell)) << 42) | (np.int64(np.floor((p[1] - lo[1]) / cell)) << 21)
+            | np.int64(np.floor((p[2] - lo[2]) / cell)))
+
+
+@njit(cache=True, nogil=True)
+def _near_any(points, x, radius):
+    n = x.shape[0]
+    hit = np.zeros(n, np.bool_)
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for d in range(3):
+        lo[d] = x[0, d]
+        hi[d] = x[0, d]
+    for i in range(n):
+        for d in range(3):
+            lo[d] = min(lo[d], x[i, d])
+            hi[d] = max(hi[d], x[i, d])
+    for d in range(3):  # a margin of a cell: every query's 27 cells lie inside [lo, hi + ...]
+        lo[d] -= 2 * radius
+        hi[d] += 2 * radius
+    # the scan points that can be near a query, bucketed by cube of edge ``radius``
+    inside = np.empty(points.shape[0], np.int64)
+    m = 0
+    for j in range(points.shape[0]):
+        if (lo[0] <= points[j, 0] <= hi[0]) and (lo[1] <= points[j, 1] <= hi[1]) and (lo[2] <= points[j, 2] <= hi[2]):
+            inside[m] = j
+            m += 1
+    bits = 4
+    while (1 << bits) < 2 * m + 2:
+        bits += 1
+    mask = (1 << bits) - 1
+    shift = np.uint64(64 - bits)
+    slot_keys = np.full(1 << bits, -1, np.int64)
+    slot_cell = np.empty(1 << bits, np.int64)
+    cell_of = np.empty(m, np.int64)
+    cells = 0
+    for a in range(m):
+        key = _cell_key(points[inside[a]], lo, radius)
+        slot = _slot(slot_keys, key, shift, mask)
+        if slot_keys[slot] == -1:
+            slot_keys[slot] = key
+            slot_cell[slot] = cells
+            cells += 1
+        cell_of[a] = slot_cell[slot]
+    start = np.zeros(cells + 1, np.int64)
+    for a in range(m):
+        start[cell_of[a] + 1] += 1
+    for c in range(cells):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    members = np.empty(m, np.int64)
+    for a in range(m):
+        members[fill[cell_of[a]]] = inside[a]
+        fill[cell_of[a]] += 1
+    r2 = radius * radius
+    for i in range(n):
+        ci = np.int64(np.floor((x[i, 0] - lo[0]) / radius))
+        cj = np.int64(np.floor((x[i, 1] - lo[1]) / radius))
+        ck = np.int64(np.floor((x[i, 2] - lo[2]) / radius))
+        for step in range(27):  # its own cube first, then the 26 around it
+            s = (step + 13) % 27
+            key = ((ci + s // 9 - 1) << 42) | ((cj + (s // 3) % 3 - 1) << 21) | (ck + s % 3 - 1)
+            slot = _slot(slot_keys, key, shift, mask)
+            if slot_keys[slot] == -1:
+                continue
+            c = slot_cell[slot]
+            for b in range(start[c], start[c + 1]):
+                j = members[b]
+                e0, e1, e2 = points[j, 0] - x[i, 0], points[j, 1] - x[i, 1], points[j, 2] - x[i, 2]
+                if e0 * e0 + e1 * e1 + e2 * e2 < r2:
+                    hit[i] = True
+                    break
+            if hit[i]:
+                break
+    return hit
+
+
+MAX_CELLS_PER_AXIS = (1 << 21) - 8
+"""Cubes per axis the packed keys of :func:`near_any_points` can count (21 bits, margins)."""
+
+
+def near_any_points(points: np.ndarray, x: np.ndarray, radius: float) -> np.ndarray | None:
+    """(M,) bool: some row of ``points`` (N,3) lies closer than ``radius`` to each query
+    ``x`` (M,3), same frame and units; None when the queries span more than
+    ``MAX_CELLS_PER_AXIS`` cubes of edge ``radius`` on an axis (the caller searches
+    otherwise). Exact: the points near the queries are bucketed by cube of edge ``radius``
+    (a hash table), and a query looks at its own cube first, then at the 26 around it,
+    which hold every point that close."""
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    if len(x) == 0 or len(points) == 0:
+        return np.zeros(len(x), dtype=bool)
+    if not radius > 0 or np.any(np.ptp(x, axis=0) / radius + 4 > MAX_CELLS_PER_AXIS):
+        return None
+    return _near_any(np.ascontiguousarray(points, dtype=np.float64), x, float(radius))
