@@ -4,7 +4,7 @@ same numbers, without NumPy's sort of every point.
 
 NumPy groups N keys with a stable argsort of all of them (~3 ms for a 120k-point scan)
 plus a handful of gathers and scatters; here each key goes through a hash table once
-(first come, first numbered), only the V distinct keys are sorted (V is a fraction of N at
+(:mod:`flowslam.compiled_hash`; first come, first numbered), only the V distinct keys are sorted (V is a fraction of N at
 map resolutions), and the sums run in one pass in point order, as ``np.bincount`` sums.
 Imported on first use, so that a command that never groups points never loads numba.
 
@@ -16,32 +16,21 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from flowslam.compiled_hash import empty_table, find_slot
+
 __all__ = ["group_means", "grouped_keys", "packed_voxel_keys"]
-
-_HASH = np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing: 2^64 / golden ratio, odd
-
 
 @njit(cache=True, nogil=True)
 def _first_met(keys):
     """(group of each key numbered in the order first met, the distinct keys in that order)."""
-    n = keys.shape[0]
-    bits = 4
-    while (1 << bits) < 2 * n:
-        bits += 1
-    mask = (1 << bits) - 1
-    shift = np.uint64(64 - bits)
-    slot_keys = np.empty(1 << bits, np.int64)
-    slot_group = np.full(1 << bits, -1, np.int64)
-    group = np.empty(n, np.int64)
-    distinct = np.empty(n, np.int64)
+    slot_keys, slot_group, shift = empty_table(keys.shape[0])
+    group = np.empty(keys.shape[0], np.int64)
+    distinct = np.empty(keys.shape[0], np.int64)
     count = 0
-    for i in range(n):
-        slot = np.int64((np.uint64(keys[i]) * _HASH) >> shift)
-        while slot_group[slot] != -1 and slot_keys[slot] != keys[i]:
-            slot = (slot + 1) & mask
+    for i in range(keys.shape[0]):
+        slot = find_slot(slot_keys, slot_group, shift, keys[i])
         if slot_group[slot] == -1:
-            slot_keys[slot] = keys[i]
-            slot_group[slot] = count
+            slot_keys[slot], slot_group[slot] = keys[i], count
             distinct[count] = keys[i]
             count += 1
         group[i] = slot_group[slot]

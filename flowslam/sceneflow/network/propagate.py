@@ -18,6 +18,8 @@ import torch
 from numba import njit
 from torch import Tensor
 
+from flowslam.compiled_hash import empty_table, find_slot
+
 __all__ = ["random_subsample", "voxel_keys", "propagate"]
 
 _OFFSET = 1 << 20  # keeps quantised coordinates non-negative for +-2**20 voxels
@@ -145,52 +147,13 @@ def _packed(q, shift):
     return keys
 
 
-_HASH = np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing: 2^64 / golden ratio, odd
-
-
-@njit(cache=True, nogil=True)
-def _table(n):
-    """An empty open-addressing hash table for up to ``n`` distinct non-negative keys:
-    (slot keys (-1: empty), slot values, shift of the hash)."""
-    bits = 4
-    while (1 << bits) < 2 * n:
-        bits += 1
-    return np.full(1 << bits, -1, np.int64), np.empty(1 << bits, np.int64), np.uint64(64 - bits)
-
-
-@njit(cache=True, nogil=True)
-def _insert(slot_keys, slot_values, shift, key, value):
-    """The value of ``key`` in the table, after giving it ``value`` if it had none."""
-    mask = slot_keys.shape[0] - 1
-    slot = np.int64((np.uint64(key) * _HASH) >> shift)
-    while slot_keys[slot] != -1:
-        if slot_keys[slot] == key:
-            return slot_values[slot]
-        slot = (slot + 1) & mask
-    slot_keys[slot] = key
-    slot_values[slot] = value
-    return value
-
-
-@njit(cache=True, nogil=True)
-def _find(slot_keys, slot_values, shift, key):
-    """Index of ``key`` in the keys of :func:`_table` (-1: not there)."""
-    mask = slot_keys.shape[0] - 1
-    slot = np.int64((np.uint64(key) * _HASH) >> shift)
-    while slot_keys[slot] != -1:
-        if slot_keys[slot] == key:
-            return slot_values[slot]
-        slot = (slot + 1) & mask
-    return -1
-
-
 @njit(cache=True, nogil=True)
 def _voxel_levels(points, sample_index, values, voxel_size, max_levels, growth_log2):
     """:func:`propagate`'s voxel levels on float32 arrays (``voxel_size`` a float32): (the
     (N, K) outputs, indices of the points still without one). Per level, the sampled values
     are summed per voxel in sample order and divided by the count in float32, as the torch
     version's ``index_add_`` and division do; voxels are found through a hash table of
-    their keys instead of a sorted key list."""
+    their keys (:mod:`flowslam.compiled_hash`) instead of a sorted key list."""
     n_points, k = points.shape[0], values.shape[1]
     out = np.zeros((n_points, k), np.float32)
     todo = np.ones(n_points, np.bool_)
@@ -212,13 +175,15 @@ def _voxel_levels(points, sample_index, values, voxel_size, max_levels, growth_l
             break
         shift = growth_log2 * level
         ref_keys = _packed(q_ref, shift)
-        slot_keys, slot_values, hash_shift = _table(ref_keys.shape[0])
+        slot_keys, slot_values, hash_shift = empty_table(ref_keys.shape[0])
         voxel = np.empty(ref_keys.shape[0], np.int64)  # each sample's voxel, numbered as first met
         count = 0
         for row in range(ref_keys.shape[0]):
-            voxel[row] = _insert(slot_keys, slot_values, hash_shift, ref_keys[row], count)
-            if voxel[row] == count:
+            slot = find_slot(slot_keys, slot_values, hash_shift, ref_keys[row])
+            if slot_values[slot] == -1:
+                slot_keys[slot], slot_values[slot] = ref_keys[row], count
                 count += 1
+            voxel[row] = slot_values[slot]
         sums = np.zeros((count, k), np.float32)
         counts = np.zeros(count, np.float32)
         for row in range(voxel.shape[0]):  # sample order, as index_add_
@@ -231,7 +196,7 @@ def _voxel_levels(points, sample_index, values, voxel_size, max_levels, growth_l
         left_keys = _packed(q_left, shift)
         rest = 0
         for row in range(left.shape[0]):
-            pos = _find(slot_keys, slot_values, hash_shift, left_keys[row])
+            pos = slot_values[find_slot(slot_keys, slot_values, hash_shift, left_keys[row])]
             if pos >= 0:
                 for j in range(k):
                     out[left[row], j] = sums[pos, j]

@@ -12,7 +12,7 @@ neighbourhood at a time: the objects stage asks for the normals of a few dozen p
 a time, where the ~20 NumPy calls of those closed forms cost more than the arithmetic.
 
 :func:`near_any_points` answers "is some scan point within r of each query?" from a hash
-table of r-sized cubes: the off-surface test of the geometric movers asks it for ~50k
+table of r-sized cubes (:mod:`flowslam.compiled_hash`): the off-surface test of the geometric movers asks it for ~50k
 points per scan pair, where a dense voxel grid over the queries' box cost more to clear
 than the queries did.
 
@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+from flowslam.compiled_hash import empty_table, find_slot
 
 __all__ = ["gathered_covariances", "near_any_points", "neighbourhood_normals"]
 
@@ -131,18 +133,6 @@ def neighbourhood_normals(points: np.ndarray, neighbours: np.ndarray, dist: np.n
                     np.ascontiguousarray(dist, dtype=np.float64))
 
 
-_HASH = np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing: 2^64 / golden ratio, odd
-
-
-@njit(cache=True, nogil=True)
-def _slot(slot_keys, key, shift, mask):
-    """The slot of ``key`` in an open-addressing table, or the empty slot (-1) where it would go."""
-    slot = np.int64((np.uint64(key) * _HASH) >> shift)
-    while slot_keys[slot] != -1 and slot_keys[slot] != key:
-        slot = (slot + 1) & mask
-    return slot
-
-
 @njit(cache=True, nogil=True)
 def _cell_key(p, lo, cell):
     """Packed int64 key (21 bits per axis) of the ``cell``-sized cube holding ``p``, counted from ``lo``."""
@@ -173,21 +163,14 @@ def _near_any(points, x, radius):
         if (lo[0] <= points[j, 0] <= hi[0]) and (lo[1] <= points[j, 1] <= hi[1]) and (lo[2] <= points[j, 2] <= hi[2]):
             inside[m] = j
             m += 1
-    bits = 4
-    while (1 << bits) < 2 * m + 2:
-        bits += 1
-    mask = (1 << bits) - 1
-    shift = np.uint64(64 - bits)
-    slot_keys = np.full(1 << bits, -1, np.int64)
-    slot_cell = np.empty(1 << bits, np.int64)
+    slot_keys, slot_cell, shift = empty_table(m)
     cell_of = np.empty(m, np.int64)
     cells = 0
     for a in range(m):
         key = _cell_key(points[inside[a]], lo, radius)
-        slot = _slot(slot_keys, key, shift, mask)
-        if slot_keys[slot] == -1:
-            slot_keys[slot] = key
-            slot_cell[slot] = cells
+        slot = find_slot(slot_keys, slot_cell, shift, key)
+        if slot_cell[slot] == -1:
+            slot_keys[slot], slot_cell[slot] = key, cells
             cells += 1
         cell_of[a] = slot_cell[slot]
     start = np.zeros(cells + 1, np.int64)
@@ -208,10 +191,9 @@ def _near_any(points, x, radius):
         for step in range(27):  # its own cube first, then the 26 around it
             s = (step + 13) % 27
             key = ((ci + s // 9 - 1) << 42) | ((cj + (s // 3) % 3 - 1) << 21) | (ck + s % 3 - 1)
-            slot = _slot(slot_keys, key, shift, mask)
-            if slot_keys[slot] == -1:
+            c = slot_cell[find_slot(slot_keys, slot_cell, shift, key)]
+            if c == -1:
                 continue
-            c = slot_cell[slot]
             for b in range(start[c], start[c + 1]):
                 j = members[b]
                 e0, e1, e2 = points[j, 0] - x[i, 0], points[j, 1] - x[i, 1], points[j, 2] - x[i, 2]
