@@ -4,8 +4,9 @@ same numbers, without NumPy's sort of every point.
 
 NumPy groups N keys with a stable argsort of all of them (~3 ms for a 120k-point scan)
 plus a handful of gathers and scatters; here each key goes through a hash table once
-(:mod:`flowslam.compiled_hash`; first come, first numbered), only the V distinct keys are sorted (V is a fraction of N at
-map resolutions), and the sums run in one pass in point order, as ``np.bincount`` sums.
+(:mod:`flowslam.compiled_hash`; first come, first numbered), only the V distinct keys are
+sorted (V is a fraction of N at map resolutions), and the sums run in one pass in point
+order, as ``np.bincount`` sums.
 Imported on first use, so that a command that never groups points never loads numba.
 
 Units: those of the points (m); keys are int64.
@@ -19,6 +20,7 @@ from numba import njit
 from flowslam.compiled_hash import empty_table, find_slot
 
 __all__ = ["group_means", "grouped_keys", "packed_voxel_keys"]
+
 
 @njit(cache=True, nogil=True)
 def _first_met(keys):

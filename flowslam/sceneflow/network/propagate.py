@@ -86,19 +86,18 @@ def propagate(
         (N, K) values.
     """
     N = len(points)
-    out = values.new_zeros((N,) + values.shape[1:])
     if len(sample_index) == 0:
-        return out
+        return values.new_zeros((N,) + values.shape[1:])
     flat = values.reshape(len(values), -1)
     if _compiled(points, flat):
-        out_flat, left = _voxel_levels(points.numpy(), sample_index.numpy().astype(np.int64), flat.numpy(),
-                                       np.float32(voxel_size), max_levels, growth_log2)
-        out = torch.from_numpy(out_flat).view((N,) + values.shape[1:])
+        levels, left = _voxel_levels(points.numpy(), sample_index.numpy().astype(np.int64), flat.numpy(),
+                                     np.float32(voxel_size), max_levels, growth_log2)
+        out_flat = torch.from_numpy(levels)
         if len(left):
             left = torch.from_numpy(left)
-            out_flat = out.view(N, -1)
             out_flat[left] = flat[_nearest(points[left], points[sample_index])]
-        return out
+        return out_flat.view((N,) + values.shape[1:])
+    out = values.new_zeros((N,) + values.shape[1:])
     out_flat = out.view(N, -1)
     out_flat[sample_index] = flat
     todo = torch.ones(N, dtype=torch.bool, device=points.device)

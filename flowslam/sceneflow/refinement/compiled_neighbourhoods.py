@@ -122,7 +122,8 @@ def gathered_covariances(points: np.ndarray, neighbours: np.ndarray, dist: np.nd
                      np.ascontiguousarray(dist, dtype=np.float64))
 
 
-def neighbourhood_normals(points: np.ndarray, neighbours: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def neighbourhood_normals(points: np.ndarray, neighbours: np.ndarray,
+                          dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(N,3) unit normals of the neighbourhoods that a KD-tree query gave (``neighbours``,
     ``dist`` as in :func:`gathered_covariances`): the eigenvector of each covariance's
     smallest eigenvalue (sign arbitrary), NaN where a neighbourhood has fewer than 3 points
