@@ -156,7 +156,7 @@ def main() -> None:
     rates: dict[str, list[float]] = {name: [] for name in END_TO_END}
     laps: dict[str, list[float]] = {name: [] for name in END_TO_END}
     waits: dict[str, list[float]] = {name: [] for name in END_TO_END}
-    cpu: dict[str, list[float]] = {name: [] for name in END_TO_END}
+    cpu: dict[str, list[tuple[float, float]]] = {name: [] for name in END_TO_END}
     for _ in range(args.runs):  # alternating, so that the configurations share the load
         for name, (frontend, options) in END_TO_END.items():
             rate, seconds, waited, cpu_ms = run_end_to_end(args.sequence, args.frames, frontend, options, network,
