@@ -70,7 +70,8 @@ def test_near_any_is_exact_against_a_kd_tree_query():
 
 def test_near_any_falls_back_to_the_grid_and_tree_where_the_cubes_do_not_fit(monkeypatch):
     """Queries spanning more cubes than the packed keys count take the dense grid and KD-tree
-    path, with the same exact answer (the limit lowered here to force it)."""
+    path, with the same exact answer (the limit lowered here to force it); so do non-finite
+    queries, which SciPy's tree refuses."""
     from flowslam.sceneflow.refinement import compiled_neighbourhoods
 
     scan = ScanSurface(_street(3), max_range_m=40.0)
@@ -78,6 +79,8 @@ def test_near_any_falls_back_to_the_grid_and_tree_where_the_cubes_do_not_fit(mon
     queries += np.random.default_rng(5).normal(scale=0.2, size=queries.shape)
     expected = np.isfinite(cKDTree(scan.points).query(queries, distance_upper_bound=0.25)[0])
     assert compiled_neighbourhoods.near_any_points(scan.points, queries, 0.25) is not None
+    with_nan = np.vstack([queries, [[np.nan, 0.0, 0.0]]])
+    assert compiled_neighbourhoods.near_any_points(scan.points, with_nan, 0.25) is None  # SciPy refuses them
     monkeypatch.setattr(compiled_neighbourhoods, "MAX_CELLS_PER_AXIS", 10)
     assert compiled_neighbourhoods.near_any_points(scan.points, queries, 0.25) is None
     np.testing.assert_array_equal(scan.near_any(queries, 0.25), expected)

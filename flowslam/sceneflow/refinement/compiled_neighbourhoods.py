@@ -213,13 +213,13 @@ MAX_CELLS_PER_AXIS = (1 << 21) - 8
 def near_any_points(points: np.ndarray, x: np.ndarray, radius: float) -> np.ndarray | None:
     """(M,) bool: some row of ``points`` (N,3) lies closer than ``radius`` to each query
     ``x`` (M,3), same frame and units; None when the queries span more than
-    ``MAX_CELLS_PER_AXIS`` cubes of edge ``radius`` on an axis (the caller searches
-    otherwise). Exact: the points near the queries are bucketed by cube of edge ``radius``
+    ``MAX_CELLS_PER_AXIS`` cubes of edge ``radius`` on an axis or are not all finite (the
+    caller searches otherwise). Exact: the points near the queries are bucketed by cube of edge ``radius``
     (a hash table), and a query looks at its own cube first, then at the 26 around it,
     which hold every point that close."""
     x = np.ascontiguousarray(x, dtype=np.float64)
     if len(x) == 0 or len(points) == 0:
         return np.zeros(len(x), dtype=bool)
-    if not radius > 0 or np.any(np.ptp(x, axis=0) / radius + 4 > MAX_CELLS_PER_AXIS):
-        return None
+    if not radius > 0 or not np.isfinite(x).all() or np.any(np.ptp(x, axis=0) / radius + 4 > MAX_CELLS_PER_AXIS):
+        return None  # (non-finite queries: the caller's KD-tree refuses them, as before)
     return _near_any(np.ascontiguousarray(points, dtype=np.float64), x, float(radius))
