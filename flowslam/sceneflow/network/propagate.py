@@ -92,15 +92,21 @@ def propagate(
     if _compiled(points, flat):
         levels, left = _voxel_levels(points.numpy(), sample_index.numpy().astype(np.int64), flat.numpy(),
                                      np.float32(voxel_size), max_levels, growth_log2)
-        out_flat = torch.from_numpy(levels)
-        if len(left):
-            left = torch.from_numpy(left)
-            out_flat[left] = flat[_nearest(points[left], points[sample_index])]
-        return out_flat.view((N,) + values.shape[1:])
-    out = values.new_zeros((N,) + values.shape[1:])
-    out_flat = out.view(N, -1)
+        out_flat, left = torch.from_numpy(levels), torch.from_numpy(left)
+    else:
+        out_flat, left = _torch_levels(points, sample_index, flat, voxel_size, max_levels, growth_log2)
+    if len(left):  # no sampled point in any of their voxels: the nearest sampled point's
+        out_flat[left] = flat[_nearest(points[left], points[sample_index])]
+    return out_flat.view((N,) + values.shape[1:])
+
+
+def _torch_levels(points: Tensor, sample_index: Tensor, flat: Tensor, voxel_size: float, max_levels: int,
+                  growth_log2: int) -> tuple[Tensor, Tensor]:
+    """:func:`propagate`'s voxel levels in torch (any device, autograd): (the (N, K)
+    outputs, indices of the points still without one)."""
+    out_flat = flat.new_zeros((len(points), flat.shape[1]))
     out_flat[sample_index] = flat
-    todo = torch.ones(N, dtype=torch.bool, device=points.device)
+    todo = torch.ones(len(points), dtype=torch.bool, device=points.device)
     todo[sample_index] = False
     left = torch.nonzero(todo).squeeze(1)
     # integer coordinates at the finest level; coarser levels are arithmetic shifts (floor)
@@ -108,7 +114,7 @@ def propagate(
     q_left = points[left].div_(voxel_size).floor_().long()
     for level in range(max_levels):
         if len(left) == 0:
-            return out
+            break
         shift = growth_log2 * level
         keys, inverse = torch.unique(_pack(q_ref >> shift), return_inverse=True)
         sums = flat.new_zeros(len(keys), flat.shape[1]).index_add_(0, inverse, flat)
@@ -120,9 +126,7 @@ def propagate(
         found, rest = torch.nonzero(hit).squeeze(1), torch.nonzero(~hit).squeeze(1)
         out_flat.index_copy_(0, left[found], means[pos[found]])
         left, q_left = left[rest], q_left[rest]
-    if len(left):
-        out_flat[left] = flat[_nearest(points[left], points[sample_index])]
-    return out
+    return out_flat, left
 
 
 def _compiled(points: Tensor, values: Tensor) -> bool:
