@@ -957,7 +957,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
                 record["accepted"] = True
                 motions.append(_polished(moving_part, box, Tm, fm, rm, surface, T_ego, c))
     if motions and c.leftover_motion:
-        leftover = _leftover_motion(p, flow, ego, motions, box, tgt, surface, T_ego, c)
+        leftover = _leftover_motion(p, flow, ego, motions, tgt, surface, T_ego, c)
         if leftover is not None:
             motions.append(leftover)
             record["leftover_motion"] = True
@@ -1032,11 +1032,11 @@ def _observable(landing: np.ndarray, departure: np.ndarray, surface: ScanSurface
     return np.count_nonzero(cos[known] >= DISCRIMINATING_COS) >= c.min_discriminating_share * np.count_nonzero(known)
 
 
-def _leftover_motion(p: np.ndarray, flow: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], box: np.ndarray,
-                     tgt: IcpTarget, surface: ScanSurface, T_ego: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray | None:
+def _leftover_motion(p: np.ndarray, flow: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], tgt: IcpTarget,
+                     surface: ScanSurface, T_ego: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray | None:
     """A further rigid motion for the points of an object (``p``, frame k-1; ``flow`` their
-    input flow, ``ego`` their ego landings) that neither the ego motion nor any of its
-    ``motions`` lands on scan k's surface (within ``score_plane_m``), when they are at least
+    input flow, ``ego`` their ego landings; ``tgt``: its target box) that neither the ego
+    motion nor any of its ``motions`` lands on scan k's surface (within ``score_plane_m``), when they are at least
     ``min_points`` and ``leftover_share`` of it: registered on their own from their input
     flow's median displacement, kept when it fits (``min_fitness``, ``max_rmse_m``) and the
     ego motion does not explain them as well. Two vehicles side by side that move apart
@@ -1054,7 +1054,7 @@ def _leftover_motion(p: np.ndarray, flow: np.ndarray, ego: np.ndarray, motions: 
         return None
     if _ego_explains(_score(r, T_ego, surface, c), fitness, rmse, len(r), c):
         return None
-    return _polished(r, box, T, fitness, rmse, surface, T_ego, c)
+    return _polished(r, tgt.points, T, fitness, rmse, surface, T_ego, c)
 
 
 def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, instance: np.ndarray,
