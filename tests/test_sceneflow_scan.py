@@ -102,17 +102,25 @@ def test_linear_scan_matches_cumulative_recurrence():
     assert _rel_err(linear_scan(a, u, chunk=9), torch.stack(ref, 1)) < 1e-12
 
 
-def test_speed_chunked_vs_sequential(capsys):
-    """Printed, not asserted: the chunked scan against the sequential loop."""
+def test_speed_chunked_vs_sequential(capsys, monkeypatch):
+    """Printed, not asserted: the chunked scan and the compiled inference loop against the
+    sequential reference."""
+    from flowslam.sceneflow.network import selective_scan as module
+
     L, Dm, S = 4096, 16, 8
     ins = [t.detach() for t in _inputs(1, L, Dm, S, seed=9, dt_scale=0.1)]
+    times = {}
     with torch.no_grad():
-        selective_scan(*ins, chunk=64)  # warm-up
+        for name, compiled in (("chunked", False), ("compiled", True)):
+            monkeypatch.setattr(module, "COMPILED_INFERENCE", compiled)
+            selective_scan(*ins, chunk=64)  # warm-up
+            t0 = time.perf_counter()
+            selective_scan(*ins, chunk=64)
+            times[name] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        selective_scan(*ins, chunk=64)
-        t1 = time.perf_counter()
         selective_scan_reference(*ins)
-        t2 = time.perf_counter()
+        sequential = time.perf_counter() - t0
     with capsys.disabled():
-        print(f"\nselective scan L={L} Dm={Dm} S={S}: chunked {1e3 * (t1 - t0):.1f} ms, "
-              f"sequential {1e3 * (t2 - t1):.1f} ms ({(t2 - t1) / max(t1 - t0, 1e-9):.0f}x)")
+        print(f"\nselective scan L={L} Dm={Dm} S={S}: chunked {1e3 * times['chunked']:.1f} ms, "
+              f"compiled {1e3 * times['compiled']:.1f} ms, sequential {1e3 * sequential:.1f} ms "
+              f"({sequential / max(times['chunked'], 1e-9):.0f}x the chunked)")

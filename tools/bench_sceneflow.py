@@ -37,6 +37,7 @@ import torch
 from flowslam import geometry
 from flowslam.sceneflow.network.model import ModelConfig, SceneFlowNet, tune_cpu_allocator
 from flowslam.sceneflow.network.propagate import propagate, random_subsample
+from flowslam.sceneflow.network import selective_scan as selective_scan_module
 from flowslam.sceneflow.network.selective_scan import selective_scan, selective_scan_reference
 
 DATA = Path(os.environ.get("FLOWSLAM_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -142,8 +143,13 @@ def bench_scan(runs: int) -> list[str]:
         B, C = torch.randn(1, L, S, generator=g), torch.randn(1, L, S, generator=g)
         D = torch.randn(Dm, generator=g)
         with torch.no_grad():
-            med, best, _ = _timeit(lambda: selective_scan(x, delta, A, B, C, D, chunk=128), runs)
-        line = f"  L={L:6d} Dm={Dm} S={S}: chunked {med:7.1f} ms (min {best:.1f})"
+            selective_scan_module.COMPILED_INFERENCE = False
+            try:
+                med, best, _ = _timeit(lambda: selective_scan(x, delta, A, B, C, D, chunk=128), runs)
+            finally:
+                selective_scan_module.COMPILED_INFERENCE = True
+            cmed, _, _ = _timeit(lambda: selective_scan(x, delta, A, B, C, D, chunk=128), runs)
+        line = f"  L={L:6d} Dm={Dm} S={S}: chunked {med:7.1f} ms (min {best:.1f}), compiled (inference) {cmed:6.1f} ms"
         if L <= 4096:
             with torch.no_grad():
                 rmed, _, _ = _timeit(lambda: selective_scan_reference(x, delta, A, B, C, D), 1)
