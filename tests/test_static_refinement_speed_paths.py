@@ -109,3 +109,36 @@ def test_covariances_equal_open3d(kitti_target, radius, max_nn):
     identity = (expected == np.eye(3)).all(axis=(1, 2))
     assert identity.sum() > 0 and np.array_equal(identity, (got == np.eye(3)).all(axis=(1, 2)))
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("radius, k", [(1.2, 20), (0.5, 20), (3.5, 40)])
+def test_compiled_neighbours_equal_scipy_query(kitti_target, radius, k):
+    """``knn_within`` (cubes of edge ``radius``) gives SciPy's ``cKDTree.query(k,
+    distance_upper_bound)`` on a real KITTI target: the same neighbours in the same order,
+    the same distances, N / inf where there are fewer than k; on every point and on a subset."""
+    from scipy.spatial import cKDTree
+
+    from flowslam.sceneflow.refinement.compiled_neighbourhoods import knn_within
+
+    tree = cKDTree(kitti_target)
+    for idx in (np.arange(len(kitti_target)), np.arange(3, len(kitti_target), 7)):
+        dist, nb = tree.query(kitti_target[idx], k=k, distance_upper_bound=radius)
+        got_nb, got_dist = knn_within(kitti_target, idx, radius, k)
+        assert (nb == len(kitti_target)).any()  # some points have fewer than k within the radius
+        np.testing.assert_array_equal(got_nb, nb)
+        np.testing.assert_array_equal(got_dist, dist)
+
+
+def test_compiled_neighbours_on_ties_and_edge_cases():
+    """Equal distances come lowest index first; a point at exactly the radius is out (as
+    in SciPy's query); more neighbours asked than points; non-finite points decline (None)."""
+    from flowslam.sceneflow.refinement.compiled_neighbourhoods import knn_within
+
+    points = np.array([[0.0, 0, 0], [1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, 0, 2.0]])
+    nb, dist = knn_within(points, np.array([0]), 1.5, 10)
+    assert nb.shape == (1, 5)
+    np.testing.assert_array_equal(nb[0], [0, 1, 2, 3, 5])
+    np.testing.assert_array_equal(dist[0], [0.0, 1.0, 1.0, 1.0, np.inf])
+    nb, dist = knn_within(points, np.array([0]), 1.0, 3)  # the three at exactly 1.0 are not within
+    np.testing.assert_array_equal(nb[0], [0, 5, 5])
+    assert knn_within(np.array([[0.0, 0, 0], [np.nan, 0, 0]]), np.array([0]), 1.0, 2) is None

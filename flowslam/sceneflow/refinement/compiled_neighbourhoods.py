@@ -26,7 +26,7 @@ from numba import njit
 
 from flowslam.compiled_hash import empty_table, find_slot
 
-__all__ = ["gathered_covariances", "near_any_points", "neighbourhood_normals"]
+__all__ = ["gathered_covariances", "knn_within", "near_any_points", "neighbourhood_normals"]
 
 
 @njit(cache=True, nogil=True)
@@ -223,3 +223,111 @@ def near_any_points(points: np.ndarray, x: np.ndarray, radius: float) -> np.ndar
     if not radius > 0 or not np.isfinite(x).all() or np.any(np.ptp(x, axis=0) / radius + 4 > MAX_CELLS_PER_AXIS):
         return None  # (non-finite queries: the caller's KD-tree refuses them, as before)
     return _near_any(np.ascontiguousarray(points, dtype=np.float64), x, float(radius))
+
+
+
+@njit(cache=True, nogil=True)
+def _knn_within(points, idx, radius, k):
+    n_points = points.shape[0]
+    lo = np.empty(3)
+    for d in range(3):
+        lo[d] = points[0, d]
+    for j in range(n_points):
+        for d in range(3):
+            lo[d] = min(lo[d], points[j, d])
+    # the points bucketed by cube of edge ``radius`` (hash table of packed cube keys)
+    slot_keys, slot_cell, shift = empty_table(n_points)
+    cell_of = np.empty(n_points, np.int64)
+    coords = np.empty((n_points, 3), np.int64)  # per cube (first ``cells`` rows)
+    cells = 0
+    for j in range(n_points):
+        key = _cell_key(points[j], lo, radius)
+        slot = find_slot(slot_keys, slot_cell, shift, key)
+        if slot_cell[slot] == -1:
+            slot_keys[slot], slot_cell[slot] = key, cells
+            coords[cells, 0], coords[cells, 1], coords[cells, 2] = key >> 42, (key >> 21) & 0x1FFFFF, key & 0x1FFFFF
+            cells += 1
+        cell_of[j] = slot_cell[slot]
+    start = np.zeros(cells + 1, np.int64)
+    for j in range(n_points):
+        start[cell_of[j] + 1] += 1
+    for c in range(cells):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    members = np.empty(n_points, np.int64)
+    for j in range(n_points):
+        members[fill[cell_of[j]]] = j
+        fill[cell_of[j]] += 1
+    # the queries grouped by cube: each cube's 27-cube neighbourhood is gathered once
+    n = idx.shape[0]
+    qstart = np.zeros(cells + 1, np.int64)
+    for i in range(n):
+        qstart[cell_of[idx[i]] + 1] += 1
+    for c in range(cells):
+        qstart[c + 1] += qstart[c]
+    qfill = qstart[:-1].copy()
+    queries = np.empty(n, np.int64)
+    for i in range(n):
+        queries[qfill[cell_of[idx[i]]]] = i
+        qfill[cell_of[idx[i]]] += 1
+    nb = np.full((n, k), n_points, np.int64)
+    dist = np.full((n, k), np.inf)
+    best = np.empty(k)
+    near = np.empty(n_points, np.int64)
+    r2 = radius * radius
+    for c in range(cells):
+        if qstart[c + 1] == qstart[c]:
+            continue
+        count = 0
+        for s in range(27):
+            a, b, c3 = coords[c, 0] + s // 9 - 1, coords[c, 1] + (s // 3) % 3 - 1, coords[c, 2] + s % 3 - 1
+            if a < 0 or b < 0 or c3 < 0:
+                continue
+            other = slot_cell[find_slot(slot_keys, slot_cell, shift, (a << 42) | (b << 21) | c3)]
+            if other == -1:
+                continue
+            for m in range(start[other], start[other + 1]):
+                near[count] = members[m]
+                count += 1
+        for qq in range(qstart[c], qstart[c + 1]):
+            i = queries[qq]
+            q0, q1, q2 = points[idx[i], 0], points[idx[i], 1], points[idx[i], 2]
+            found = 0
+            for m in range(count):
+                j = near[m]
+                d0, d1, d2 = q0 - points[j, 0], q1 - points[j, 1], q2 - points[j, 2]
+                sq = d0 * d0 + d1 * d1 + d2 * d2
+                if sq >= r2 or (found == k and (sq > best[k - 1] or (sq == best[k - 1] and j > nb[i, k - 1]))):
+                    continue
+                # insert into the sorted best (equal distances: the lower index first)
+                pos = found if found < k else k - 1
+                while pos > 0 and (best[pos - 1] > sq or (best[pos - 1] == sq and nb[i, pos - 1] > j)):
+                    best[pos] = best[pos - 1]
+                    nb[i, pos] = nb[i, pos - 1]
+                    pos -= 1
+                best[pos] = sq
+                nb[i, pos] = j
+                if found < k:
+                    found += 1
+            for f in range(found):
+                dist[i, f] = np.sqrt(best[f])
+    return nb, dist
+
+
+def knn_within(points: np.ndarray, idx: np.ndarray, radius: float, k: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """The at most ``k`` nearest of ``points`` (N,3) closer than ``radius`` to each of
+    ``points[idx]``, nearest first: (neighbour indices (len(idx), k), distances), index N
+    and distance inf where there are fewer -- SciPy's ``cKDTree.query(points[idx], k,
+    distance_upper_bound=radius)`` of a tree over ``points``, the same numbers (distances
+    as the square root of ``dx^2 + dy^2 + dz^2``), from a hash table of cubes of edge
+    ``radius``: the queries in one cube share the points of its 27-cube neighbourhood. Equal distances come lowest index first (SciPy's order among them is
+    its heap's). None where the cubes' packed keys cannot count the points' extent or the
+    points are not all finite (the caller asks SciPy)."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    k = min(int(k), len(points))
+    idx = np.ascontiguousarray(idx, dtype=np.int64)
+    if len(idx) == 0 or k == 0:
+        return np.zeros((len(idx), k), np.int64), np.zeros((len(idx), k))
+    if not radius > 0 or not np.isfinite(points).all() or np.any(np.ptp(points, axis=0) / radius + 4 > MAX_CELLS_PER_AXIS):
+        return None
+    return _knn_within(points, idx, float(radius), k)
