@@ -1,6 +1,7 @@
-"""Point-to-point ICP of small objects onto one target, compiled (numba), tree built once.
+"""ICP compiled (numba) onto a target whose KD-tree is built once.
 
-The objects stage (:mod:`flowslam.sceneflow.refinement.objects`) registers each object
+Point-to-point (:func:`register`), for the objects stage: it
+(:mod:`flowslam.sceneflow.refinement.objects`) registers each object
 from up to 7 starts, each coarse to fine (3 stages), onto the same target box of scan k.
 Open3D's ``registration_icp`` builds a KD-tree over its target at every call and holds
 Python's GIL while it runs; here the box gets one KD-tree (:class:`IcpTarget`) that all
@@ -16,8 +17,15 @@ without scale; identity when nothing matched), moves the source by it and compos
 ``T <- update @ T``, and stops after ``max_iterations`` or when fitness and RMSE each
 changed by less than the relative thresholds. Tests compare it with Open3D's.
 
+Point-to-plane with a Tukey kernel (:func:`register_point_to_plane`), for the static
+refinement (:mod:`flowslam.sceneflow.refinement.static`): Open3D's
+``TransformationEstimationPointToPlane`` step -- the weighted normal equations of the
+residuals ``(x - q) . n``, solved by LDL^T, the update Rz Ry Rx plus a translation --
+with the same correspondences and stopping rule; its KD-tree also serves the snapping
+(:func:`nearest_within`).
+
 Frames: source points in sensor frame ``k-1`` (m), target points in sensor frame ``k``
-(m); a transform maps the source into the target frame (``T_k_{k-1}`` of the object).
+(m); a transform maps the source into the target frame (``T_k_{k-1}``).
 """
 
 from __future__ import annotations
@@ -25,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["IcpTarget", "register"]
+__all__ = ["IcpTarget", "register", "register_point_to_plane", "nearest_within"]
 
 LEAF_SIZE = 32
 """Target points per KD-tree leaf (at most, unless they all coincide)."""
@@ -258,3 +266,162 @@ def register(p: np.ndarray, target: IcpTarget, T: np.ndarray, stages, max_iterat
     return _register(np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(T, dtype=np.float64),
                      np.asarray(stages, dtype=np.float64), int(max_iterations), float(relative_fitness),
                      float(relative_rmse), ordered, start, end, axis, left, right, lo, hi)
+
+
+# ------------------------------------------------------------------ point-to-plane
+@njit(cache=True, nogil=True)
+def _ldlt_solve(A, b):
+    """``x`` with ``A x = b`` for a symmetric positive semi-definite ``A`` (n, n): LDL^T with
+    symmetric pivoting (largest remaining diagonal first), and a zero pivot's unknown set
+    to 0 (the pseudo-inverse of D), as Eigen's ``ldlt().solve`` that Open3D uses."""
+    n = A.shape[0]
+    M = A.copy()
+    perm = np.arange(n)
+    for k in range(n):
+        p = k
+        for i in range(k + 1, n):
+            if abs(M[i, i]) > abs(M[p, p]):
+                p = i
+        if p != k:  # swap rows and columns k and p
+            for j in range(n):
+                M[k, j], M[p, j] = M[p, j], M[k, j]
+            for j in range(n):
+                M[j, k], M[j, p] = M[j, p], M[j, k]
+            perm[k], perm[p] = perm[p], perm[k]
+        d = M[k, k]
+        if d == 0.0:
+            continue
+        for i in range(k + 1, n):
+            M[i, k] /= d
+        for i in range(k + 1, n):
+            for j in range(k + 1, i + 1):
+                M[i, j] -= M[i, k] * M[j, k] * d
+                M[j, i] = M[i, j]
+    y = np.empty(n)
+    for i in range(n):
+        y[i] = b[perm[i]]
+    for i in range(n):  # L y = P b (unit lower triangle)
+        for j in range(i):
+            y[i] -= M[i, j] * y[j]
+    tiny = np.finfo(np.float64).tiny
+    for i in range(n):
+        y[i] = y[i] / M[i, i] if abs(M[i, i]) > tiny else 0.0
+    for i in range(n - 1, -1, -1):  # L^T z = y
+        for j in range(i + 1, n):
+            y[i] -= M[j, i] * y[j]
+    x = np.empty(n)
+    for i in range(n):
+        x[perm[i]] = y[i]
+    return x
+
+
+@njit(cache=True, nogil=True)
+def _pose_from_twist(v):
+    """4x4 of the 6-vector (rx, ry, rz, tx, ty, tz): R = Rz(rz) Ry(ry) Rx(rx), t as given
+    (Open3D's ``TransformVector6dToMatrix4d``)."""
+    cx, sx = np.cos(v[0]), np.sin(v[0])
+    cy, sy = np.cos(v[1]), np.sin(v[1])
+    cz, sz = np.cos(v[2]), np.sin(v[2])
+    Rz = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
+    Ry = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
+    Rx = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
+    T = np.eye(4)
+    T[:3, :3] = (Rz @ Ry) @ Rx
+    T[0, 3], T[1, 3], T[2, 3] = v[3], v[4], v[5]
+    return T
+
+
+@njit(cache=True, nogil=True)
+def _plane_update(x, ordered, normals, src, dst, m, kernel):
+    """One Gauss-Newton step of the Tukey-weighted point-to-plane residuals
+    ``(x_i - q_j) . n_j`` of the matches (Open3D's ``TransformationEstimationPointToPlane``
+    with ``TukeyLoss(kernel)``): J = [x_i x n_j, n_j], weight (1 - (r / kernel)^2)^2 within
+    ``kernel``, else 0; the update as a 4x4 (identity without matches)."""
+    if m == 0:
+        return np.eye(4)
+    JTJ = np.zeros((6, 6))
+    JTr = np.zeros(6)
+    J = np.empty(6)
+    for i in range(m):
+        a, q = src[i], dst[i]
+        x0, x1, x2 = x[a, 0], x[a, 1], x[a, 2]
+        n0, n1, n2 = normals[q, 0], normals[q, 1], normals[q, 2]
+        r = (x0 - ordered[q, 0]) * n0 + (x1 - ordered[q, 1]) * n1 + (x2 - ordered[q, 2]) * n2
+        e = abs(r)
+        if e > kernel:
+            continue
+        u = 1.0 - (e / kernel) ** 2
+        w = u * u
+        J[0], J[1], J[2] = x1 * n2 - x2 * n1, x2 * n0 - x0 * n2, x0 * n1 - x1 * n0
+        J[3], J[4], J[5] = n0, n1, n2
+        for row in range(6):
+            wj = w * J[row]
+            JTr[row] += wj * r
+            for col in range(row + 1):
+                JTJ[row, col] += wj * J[col]
+    for row in range(6):
+        for col in range(row + 1, 6):
+            JTJ[row, col] = JTJ[col, row]
+    return _pose_from_twist(_ldlt_solve(JTJ, -JTr))
+
+
+@njit(cache=True, nogil=True)
+def _register_plane(p, T, stages, max_iterations, relative_fitness, relative_rmse, normals,
+                    ordered, start, end, axis, left, right, lo, hi):
+    n = p.shape[0]
+    src = np.empty(n, np.int64)
+    dst = np.empty(n, np.int64)
+    stack = np.empty(2 * len(start) + 2, np.int64)
+    hints = np.full(n, -1, np.int64)
+    for max_dist in stages:
+        x = _moved(T, p)
+        m, fitness, rmse = _match(x, max_dist, ordered, start, end, axis, left, right, lo, hi, stack, src, dst, hints)
+        for _ in range(max_iterations):
+            update = _plane_update(x, ordered, normals, src, dst, m, max_dist)
+            T = update @ T
+            x = _moved(update, x)
+            previous_fitness, previous_rmse = fitness, rmse
+            m, fitness, rmse = _match(x, max_dist, ordered, start, end, axis, left, right, lo, hi, stack, src, dst, hints)
+            if abs(previous_fitness - fitness) < relative_fitness and abs(previous_rmse - rmse) < relative_rmse:
+                break
+    return T
+
+
+def register_point_to_plane(p: np.ndarray, target: IcpTarget, normals: np.ndarray, T: np.ndarray, stages,
+                            max_iterations: int, relative_fitness: float = 1e-6,
+                            relative_rmse: float = 1e-6) -> np.ndarray:
+    """Point-to-plane ICP of ``p`` (N,3) onto ``target`` and its unit ``normals`` (one per
+    target point, in its order) from ``T`` (4,4): per correspondence distance in ``stages``
+    (m, coarse to fine) at most ``max_iterations`` iterations of Open3D's rule with a Tukey
+    kernel of that distance (``registration_icp`` with
+    ``TransformationEstimationPointToPlane(TukeyLoss(k=max_dist))``); returns the final T.
+    The same steps as Open3D: nearest target point within the distance, the weighted
+    normal equations solved by LDL^T with pivoting, the update as Rz Ry Rx and a
+    translation, the same stopping rule; sums in the source's order (Open3D sums per
+    thread), so the numbers agree to rounding."""
+    ordered, order, start, end, axis, left, right, lo, hi = target._tree
+    tree_normals = np.ascontiguousarray(np.asarray(normals, dtype=np.float64)[order])
+    return _register_plane(np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(T, dtype=np.float64),
+                           np.asarray(stages, dtype=np.float64), int(max_iterations), float(relative_fitness),
+                           float(relative_rmse), tree_normals, ordered, start, end, axis, left, right, lo, hi)
+
+
+@njit(cache=True, nogil=True)
+def _nearest_all(x, max_dist, order, ordered, start, end, axis, left, right, lo, hi):
+    stack = np.empty(2 * len(start) + 2, np.int64)
+    found = np.full(x.shape[0], -1, np.int64)
+    max_sq = max_dist * max_dist
+    for i in range(x.shape[0]):
+        j, _ = _nearest(x[i], max_sq, -1, ordered, start, end, axis, left, right, lo, hi, stack)
+        if j >= 0:
+            found[i] = order[j]
+    return found
+
+
+def nearest_within(target: IcpTarget, x: np.ndarray, max_dist: float) -> np.ndarray:
+    """(M,) index (into ``target.points``) of the nearest target point closer than
+    ``max_dist`` to each row of ``x`` (M,3), -1 where there is none (SciPy's
+    ``query(x, distance_upper_bound=max_dist)``; among equally near points either may come)."""
+    ordered, order, start, end, axis, left, right, lo, hi = target._tree
+    return _nearest_all(np.ascontiguousarray(x, dtype=np.float64), float(max_dist), order, ordered, start, end, axis,
+                        left, right, lo, hi)

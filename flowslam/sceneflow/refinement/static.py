@@ -11,9 +11,9 @@ refined at test time against the geometry of scan ``k`` itself:
    pull neither way; only target points whose neighbourhood is a plane keep their
    normal and take part (``max_surface_variation``: tilted normals at curbs, the feet of
    walls and on cars, times the in-plane offsets of ring sampling, biased every step);
-2. point-to-plane ICP (Open3D, Tukey kernel, coarse-to-fine correspondence
-   distances) starts from the motion ``T_{k,k-1}`` registered from the network's
-   static flow;
+2. point-to-plane ICP (Open3D's rule with a Tukey kernel, compiled; coarse-to-fine
+   correspondence distances) starts from the motion ``T_{k,k-1}`` registered from the
+   network's static flow;
 3. every downsampled static source point with a correspondence closer than the last
    stage's distance is *snapped*: its refined target is its position under the
    refined motion, moved onto the tangent plane of its nearest scan-``k`` point.
@@ -38,6 +38,7 @@ import numpy as np
 from flowslam.config.ssf import FlowRefinementConfig
 from flowslam.geometry import transform_points
 from flowslam.sceneflow.refinement.clusters import neighbourhood_covariances
+from flowslam.sceneflow.refinement.compiled_icp import IcpTarget, nearest_within, register_point_to_plane
 from flowslam.sceneflow.refinement.compiled_neighbourhoods import gathered_covariances, knn_within
 from flowslam.sceneflow.refinement.symmetric3 import smallest_eigenvectors, symmetric_eigenvalues
 
@@ -165,24 +166,20 @@ def _planar_points(points: np.ndarray, c: FlowRefinementConfig, tree=None) -> tu
     return points[planar][ok], normals[ok]
 
 
-def _icp(src_points: np.ndarray, planar: np.ndarray, normals: np.ndarray, T_init: np.ndarray,
+def _icp(src_points: np.ndarray, target: IcpTarget, normals: np.ndarray, T_init: np.ndarray,
          c: FlowRefinementConfig) -> np.ndarray:
-    """Point-to-plane ICP (Open3D, Tukey kernel) of ``src_points`` (frame k-1) onto the
-    planar target points and their normals (frame k), one stage per ``correspondence_m``,
-    from ``T_init``; the refined ``T_{k,k-1}`` (4,4)."""
-    import open3d as o3d
+    """Point-to-plane ICP (Tukey kernel) of ``src_points`` (frame k-1) onto the planar
+    target points (``target``, frame k) and their ``normals``, one stage per
+    ``correspondence_m``, from ``T_init``; the refined ``T_{k,k-1}`` (4,4). Open3D's
+    ``registration_icp`` rule, compiled
+    (:func:`~flowslam.sceneflow.refinement.compiled_icp.register_point_to_plane`: one
+    KD-tree for both stages and the snapping, Python's GIL released)."""
+    return register_point_to_plane(src_points, target, normals, T_init, c.correspondence_m, c.max_iterations,
+                                   ICP_RELATIVE_CHANGE, ICP_RELATIVE_CHANGE)
 
-    reg = o3d.pipelines.registration
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src_points))
-    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(planar))
-    tgt.normals = o3d.utility.Vector3dVector(normals)
-    criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=c.max_iterations)
-    T = np.asarray(T_init, dtype=np.float64).copy()
-    for max_dist in c.correspondence_m:
-        estimation = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=max_dist))
-        result = reg.registration_icp(src, tgt, max_dist, T, estimation, criteria)
-        T = np.asarray(result.transformation).copy()
-    return T
+
+ICP_RELATIVE_CHANGE = 1e-6
+"""An ICP stage stops when its fitness and inlier RMSE (m) each change by less."""
 
 
 def _fitness(target_tree, x: np.ndarray, reach: float) -> float:
@@ -190,15 +187,14 @@ def _fitness(target_tree, x: np.ndarray, reach: float) -> float:
     return float(np.isfinite(target_tree.query(x, distance_upper_bound=reach)[0]).mean())
 
 
-def _snap(x: np.ndarray, planar: np.ndarray, normals: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
-    """The moved source points ``x`` (M,3, frame k) with a planar target point within
-    ``reach`` (m): (M,) bool, and their projections (K,3, frame k) onto its tangent plane."""
-    from scipy.spatial import cKDTree
-
-    dist, j = cKDTree(planar).query(x, distance_upper_bound=reach)
-    ok = np.isfinite(dist)
+def _snap(x: np.ndarray, target: IcpTarget, normals: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """The moved source points ``x`` (M,3, frame k) with a planar target point (``target``,
+    its unit ``normals``) within ``reach`` (m): (M,) bool, and their projections (K,3,
+    frame k) onto its tangent plane."""
+    j = nearest_within(target, x, reach)
+    ok = j >= 0
     n = normals[j[ok]]
-    d = np.einsum("ij,ij->i", x[ok] - planar[j[ok]], n)
+    d = np.einsum("ij,ij->i", x[ok] - target.points[j[ok]], n)
     return ok, x[ok] - d[:, None] * n
 
 
@@ -243,7 +239,8 @@ def refine_static_flow(
     if len(planar) < 10:
         return RefinedFlow(empty, empty, T_init.copy(), False, tgt_points,
                            dict(stats, refine_reason="too few planar points"))
-    T = _icp(src_points, planar, normals, T_init, c)
+    planar_target = IcpTarget(planar)  # one KD-tree for the ICP's stages and the snapping
+    T = _icp(src_points, planar_target, normals, T_init, c)
 
     # snap: refined position moved onto the tangent plane of the nearest target point
     p = src_points
@@ -254,7 +251,7 @@ def refine_static_flow(
     if fitness < c.min_fitness:
         return RefinedFlow(empty, empty, T, False, tgt_points,
                            dict(stats, refine_reason=f"fitness {fitness:.2f} < {c.min_fitness}"), target_tree)
-    ok, q = _snap(x, planar, normals, reach)
+    ok, q = _snap(x, planar_target, normals, reach)
     d = q - x[ok]
     stats["refine_plane_rmse_m"] = float(np.sqrt(np.mean(np.einsum("ij,ij->i", d, d))))
     return RefinedFlow(p[ok], q - p[ok], T, True, tgt_points, stats, target_tree, p)
