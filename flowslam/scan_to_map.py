@@ -16,7 +16,8 @@ Frames (all ``T_a_b``, 4x4, m):
 Each step (:meth:`ScanToMap.step`, every ``every``-th scan): the guess ``T_map_k`` is the
 last registered scan's map pose times the backend's current motion from that scan to k; the
 scan's static points (downsampled to ``source_voxel_m``) are registered to the map by
-Open3D's point-to-plane ICP with a Tukey kernel. Point-to-plane, not KISS-ICP's
+point-to-plane ICP with a Tukey kernel (Open3D's rule, compiled; the map's KD-tree is kept
+until the map changes). Point-to-plane, not KISS-ICP's
 point-to-point: on a simulated ``dt`` sequence with exact map poses, point-to-point to a
 voxel map was 4-8 cm off (the ground rings, which move with the sensor, pull it back),
 point-to-plane 0.3 cm. A result further than ``max_prior_*`` from the guess is not
@@ -85,14 +86,14 @@ class LocalMap:
         self.max_distance_m, self.voxel_m = max_distance_m, voxel_m
         self._scans: deque = deque(maxlen=max_scans)
         """(points (N,3), normals (N,3), sensor position (3,)), map frame."""
-        self._cloud = None
+        self._cloud = self._target = None
 
     def __len__(self) -> int:
         return len(self._scans)
 
     def clear(self) -> None:
         self._scans.clear()
-        self._cloud = None
+        self._cloud = self._target = None
 
     def add(self, points: np.ndarray, normals: np.ndarray, T_map_scan: np.ndarray) -> None:
         """Add a scan (points and normals in its sensor frame) at ``T_map_scan``; scans
@@ -101,14 +102,14 @@ class LocalMap:
         self._scans.append((points @ R.T + t, normals @ R.T, t.copy()))
         while np.linalg.norm(self._scans[0][2] - t) > self.max_distance_m:
             self._scans.popleft()
-        self._cloud = None
+        self._cloud = self._target = None
 
     def moved(self, C: np.ndarray) -> None:
         """Apply ``C`` (4x4, old map frame -> new) to every scan."""
         R, t = C[:3, :3], C[:3, 3]
         self._scans = deque(((p @ R.T + t, n @ R.T, R @ o + t) for p, n, o in self._scans),
                             maxlen=self._scans.maxlen)
-        self._cloud = None
+        self._cloud = self._target = None
 
     def cloud(self):
         """The map as one ``open3d.geometry.PointCloud`` with unit normals, downsampled to
@@ -122,6 +123,17 @@ class LocalMap:
             cloud.normalize_normals()
             self._cloud = cloud
         return self._cloud
+
+    def target(self):
+        """(:class:`~flowslam.sceneflow.refinement.compiled_icp.IcpTarget` of the :meth:`cloud`'s
+        points, their unit normals (M,3)): the registration's target, its KD-tree built once
+        per map (the map changes every ``insert_every`` scans, the registration runs every scan)."""
+        from flowslam.sceneflow.refinement.compiled_icp import IcpTarget
+
+        if self._target is None:
+            cloud = self.cloud()
+            self._target = IcpTarget(np.asarray(cloud.points)), np.asarray(cloud.normals).copy()
+        return self._target
 
 
 class ScanToMap:
@@ -213,16 +225,18 @@ class ScanToMap:
         self.stats.keyframes += 1
 
     def _register(self, cloud, guess: np.ndarray) -> np.ndarray:
-        import open3d as o3d
+        """``T_map_scan`` of the scan's ``cloud`` (sensor frame) from ``guess``: point-to-plane
+        ICP with a Tukey kernel onto the map (Open3D's ``registration_icp`` rule, compiled:
+        :func:`~flowslam.sceneflow.refinement.compiled_icp.register_point_to_plane`, on the
+        map's KD-tree kept while the map is unchanged)."""
+        from flowslam.sceneflow.refinement.compiled_icp import register_point_to_plane
 
         c = self.config
-        reg = o3d.pipelines.registration
-        source = cloud.voxel_down_sample(c.source_voxel_m)
-        result = reg.registration_icp(
-            source, self.map.cloud(), c.max_correspondence_m, guess,
-            reg.TransformationEstimationPointToPlane(reg.TukeyLoss(c.kernel_m)),
-            reg.ICPConvergenceCriteria(relative_fitness=1e-4, relative_rmse=1e-4, max_iteration=c.max_iterations))
-        return geometry.orthonormalized(np.asarray(result.transformation))
+        source = np.asarray(cloud.voxel_down_sample(c.source_voxel_m).points)
+        target, normals = self.map.target()
+        T = register_point_to_plane(source, target, normals, guess, [c.max_correspondence_m], c.max_iterations,
+                                    1e-4, 1e-4, kernel=c.kernel_m)
+        return geometry.orthonormalized(T)
 
     def _step(self, index, points, static_mask, estimate) -> MapFactor | None:
         c = self.config

@@ -366,7 +366,7 @@ def _plane_update(x, ordered, normals, src, dst, m, kernel):
 
 
 @njit(cache=True, nogil=True)
-def _register_plane(p, T, stages, max_iterations, relative_fitness, relative_rmse, normals,
+def _register_plane(p, T, stages, max_iterations, relative_fitness, relative_rmse, normals, kernel,
                     ordered, start, end, axis, left, right, lo, hi):
     n = p.shape[0]
     src = np.empty(n, np.int64)
@@ -377,7 +377,7 @@ def _register_plane(p, T, stages, max_iterations, relative_fitness, relative_rms
         x = _moved(T, p)
         m, fitness, rmse = _match(x, max_dist, ordered, start, end, axis, left, right, lo, hi, stack, src, dst, hints)
         for _ in range(max_iterations):
-            update = _plane_update(x, ordered, normals, src, dst, m, max_dist)
+            update = _plane_update(x, ordered, normals, src, dst, m, max_dist if kernel <= 0 else kernel)
             T = update @ T
             x = _moved(update, x)
             previous_fitness, previous_rmse = fitness, rmse
@@ -389,12 +389,12 @@ def _register_plane(p, T, stages, max_iterations, relative_fitness, relative_rms
 
 def register_point_to_plane(p: np.ndarray, target: IcpTarget, normals: np.ndarray, T: np.ndarray, stages,
                             max_iterations: int, relative_fitness: float = 1e-6,
-                            relative_rmse: float = 1e-6) -> np.ndarray:
+                            relative_rmse: float = 1e-6, kernel: float | None = None) -> np.ndarray:
     """Point-to-plane ICP of ``p`` (N,3) onto ``target`` and its unit ``normals`` (one per
     target point, in its order) from ``T`` (4,4): per correspondence distance in ``stages``
     (m, coarse to fine) at most ``max_iterations`` iterations of Open3D's rule with a Tukey
-    kernel of that distance (``registration_icp`` with
-    ``TransformationEstimationPointToPlane(TukeyLoss(k=max_dist))``); returns the final T.
+    kernel of ``kernel`` (m; None: that stage's distance) (``registration_icp`` with
+    ``TransformationEstimationPointToPlane(TukeyLoss(k))``); returns the final T.
     The same steps as Open3D: nearest target point within the distance, the weighted
     normal equations solved by LDL^T with pivoting, the update as Rz Ry Rx and a
     translation, the same stopping rule; sums in the source's order (Open3D sums per
@@ -403,7 +403,8 @@ def register_point_to_plane(p: np.ndarray, target: IcpTarget, normals: np.ndarra
     tree_normals = np.ascontiguousarray(np.asarray(normals, dtype=np.float64)[order])
     return _register_plane(np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(T, dtype=np.float64),
                            np.asarray(stages, dtype=np.float64), int(max_iterations), float(relative_fitness),
-                           float(relative_rmse), tree_normals, ordered, start, end, axis, left, right, lo, hi)
+                           float(relative_rmse), tree_normals, -1.0 if kernel is None else float(kernel),
+                           ordered, start, end, axis, left, right, lo, hi)
 
 
 @njit(cache=True, nogil=True)
