@@ -320,9 +320,12 @@ def knn_within(points: np.ndarray, idx: np.ndarray, radius: float, k: int) -> tu
     and distance inf where there are fewer -- SciPy's ``cKDTree.query(points[idx], k,
     distance_upper_bound=radius)`` of a tree over ``points``, the same numbers (distances
     as the square root of ``dx^2 + dy^2 + dz^2``), from a hash table of cubes of edge
-    ``radius``: the queries in one cube share the points of its 27-cube neighbourhood. Equal distances come lowest index first (SciPy's order among them is
-    its heap's). None where the cubes' packed keys cannot count the points' extent or the
-    points are not all finite (the caller asks SciPy)."""
+    ``radius``: the queries in one cube share the points of its 27-cube neighbourhood.
+    Equal distances come lowest index first (SciPy's order among them is its heap's).
+    None where the cubes' packed keys cannot count the points' extent or the points are
+    not all finite (the caller asks SciPy). Faster than SciPy where a cube holds a few
+    points (the refinement's 0.4 m voxel centroids at r = 1.2 m: 13 vs 21 ms), slower where
+    it holds hundreds (raw scans, wide radii)."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     k = min(int(k), len(points))
     idx = np.ascontiguousarray(idx, dtype=np.int64)
