@@ -34,3 +34,7 @@ fi
 # viz (rerun-sdk) too, so that the 3-D view's tests run here; flowslam itself never needs it.
 "$VENV/bin/python" -m pip install -q -e ".[dev,viz]"
 echo "setup: flowslam installed in $VENV"
+# numba's kernels compiled once here (~30 s on 2 cores) instead of in the first run; a
+# failure only leaves that first run slower (flowslam/warmup.py)
+echo "setup: compiling flowslam's kernels"
+"$VENV/bin/python" -m flowslam.warmup || true
