@@ -19,7 +19,7 @@ from numba import njit
 
 from flowslam.compiled_hash import empty_table, find_slot
 
-__all__ = ["group_means", "grouped_keys", "packed_voxel_keys"]
+__all__ = ["group_means", "grouped_keys", "open3d_voxel_means", "packed_voxel_keys"]
 
 
 @njit(cache=True, nogil=True)
@@ -106,3 +106,69 @@ def group_means(inverse: np.ndarray, counts: np.ndarray, values: np.ndarray) -> 
     counts``, column by column, to the bit."""
     return _means(np.ascontiguousarray(inverse, dtype=np.int64), np.ascontiguousarray(counts, dtype=np.int64),
                  np.ascontiguousarray(values, dtype=np.float64))
+
+
+@njit(cache=True, nogil=True)
+def _open3d_keys(points, keep, voxel_size):
+    """Open3D's voxel of each kept point, packed (21 bits per axis): indices
+    ``floor((p - (min - voxel / 2)) / voxel)`` with the minimum over the kept points, as
+    ``PointCloud::VoxelDownSample`` computes them; (kept indices, keys, whether all fit)."""
+    n = points.shape[0]
+    kept = np.empty(n, np.int64)
+    m = 0
+    lo = np.full(3, np.inf)
+    for i in range(n):
+        if keep[i]:
+            kept[m] = i
+            m += 1
+            for d in range(3):
+                lo[d] = min(lo[d], points[i, d])
+    origin = np.empty(3)
+    for d in range(3):
+        origin[d] = lo[d] - voxel_size * 0.5
+    keys = np.empty(m, np.int64)
+    fits = True
+    for a in range(m):
+        i = kept[a]
+        key = np.int64(0)
+        for d in range(3):
+            v = np.int64(np.floor((points[i, d] - origin[d]) / voxel_size))
+            if v >= (1 << 21):
+                fits = False
+            key = (key << 21) | v
+        keys[a] = key
+    return kept[:m], keys, fits
+
+
+@njit(cache=True, nogil=True)
+def _kept_means(kept, inverse, counts, columns):
+    out = np.zeros((counts.shape[0], columns.shape[1]))
+    for a in range(kept.shape[0]):
+        for j in range(columns.shape[1]):
+            out[inverse[a], j] += columns[kept[a], j]
+    for v in range(counts.shape[0]):
+        for j in range(columns.shape[1]):
+            out[v, j] /= counts[v]
+    return out
+
+
+def open3d_voxel_means(points: np.ndarray, voxel_size: float, keep: np.ndarray | None = None,
+                       normals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(centroids (V,3), mean normals (V,3) or None)``: Open3D's ``voxel_down_sample`` of the
+    (N,3) ``points`` (m; those with ``keep`` (N,) bool only), the same voxels (a grid from
+    the kept points' minimum minus half a voxel) and the same numbers (sums in point order,
+    divided by the count), in key order (x, then y, then z) instead of the order of Open3D's
+    hash map. ``normals`` (N,3) are averaged alike (not normalised). Empty input: (0,3)."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    keep = np.ones(len(points), dtype=bool) if keep is None else np.ascontiguousarray(keep, dtype=bool)
+    if not voxel_size > 0:
+        raise ValueError(f"voxel_size must be > 0 (m), got {voxel_size}")
+    columns = points if normals is None else np.hstack([points, np.asarray(normals, dtype=np.float64)])
+    if not keep.any():
+        return np.zeros((0, 3)), None if normals is None else np.zeros((0, 3))
+    kept, keys, fits = _open3d_keys(points, keep, float(voxel_size))
+    if not fits:
+        raise ValueError(f"voxel size {voxel_size} m is too small for the points' extent")
+    inverse, counts = grouped_keys(keys)
+    means = _kept_means(kept, inverse, counts, np.ascontiguousarray(columns))
+    return np.ascontiguousarray(means[:, :3]), None if normals is None else np.ascontiguousarray(means[:, 3:])

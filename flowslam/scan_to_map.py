@@ -111,17 +111,20 @@ class LocalMap:
                             maxlen=self._scans.maxlen)
         self._cloud = self._target = None
 
-    def cloud(self):
-        """The map as one ``open3d.geometry.PointCloud`` with unit normals, downsampled to
-        ``voxel_m`` (the scans overlap: one point, the mean, per voxel), cached until it changes."""
-        import open3d as o3d
+    def cloud(self) -> tuple[np.ndarray, np.ndarray]:
+        """The map downsampled to ``voxel_m`` (the scans overlap: one point, the mean, per
+        voxel) as (points (M,3), unit normals (M,3)), map frame, cached until it changes:
+        Open3D's ``voxel_down_sample`` of the points with their normals, then
+        ``normalize_normals`` (the same numbers, compiled:
+        :func:`flowslam.compiled_voxels.open3d_voxel_means`; voxels in key order)."""
+        from flowslam.compiled_voxels import open3d_voxel_means
 
         if self._cloud is None:
-            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate([s[0] for s in self._scans])))
-            cloud.normals = o3d.utility.Vector3dVector(np.concatenate([s[1] for s in self._scans]))
-            cloud = cloud.voxel_down_sample(self.voxel_m)
-            cloud.normalize_normals()
-            self._cloud = cloud
+            points, normals = open3d_voxel_means(np.concatenate([s[0] for s in self._scans]), self.voxel_m,
+                                                 normals=np.concatenate([s[1] for s in self._scans]))
+            squared = normals[:, 0] ** 2 + normals[:, 1] ** 2 + normals[:, 2] ** 2
+            normals[squared > 0] /= np.sqrt(squared[squared > 0])[:, None]  # Eigen's normalize()
+            self._cloud = points, normals
         return self._cloud
 
     def target(self):
@@ -131,8 +134,8 @@ class LocalMap:
         from flowslam.sceneflow.refinement.compiled_icp import IcpTarget
 
         if self._target is None:
-            cloud = self.cloud()
-            self._target = IcpTarget(np.asarray(cloud.points)), np.asarray(cloud.normals).copy()
+            points, normals = self.cloud()
+            self._target = IcpTarget(points), normals
         return self._target
 
 
@@ -180,10 +183,11 @@ class ScanToMap:
 
     # ------------------------------------------------------------------------------
 
-    def _prepare(self, points: np.ndarray, static_mask: np.ndarray | None, stride: int = 1):
+    def _prepare(self, points: np.ndarray, static_mask: np.ndarray | None, stride: int = 1) -> np.ndarray:
         """Static points in range (every ``stride``-th of them), downsampled to
-        ``map_voxel_m``: an Open3D cloud (sensor frame)."""
-        import open3d as o3d
+        ``map_voxel_m``: (M,3) voxel centroids, sensor frame (Open3D's ``voxel_down_sample``
+        numbers, compiled: :func:`flowslam.compiled_voxels.open3d_voxel_means`)."""
+        from flowslam.compiled_voxels import open3d_voxel_means
 
         c = self.config
         p = np.asarray(points)[::stride]
@@ -191,10 +195,9 @@ class ScanToMap:
         keep = (r2 >= c.min_range_m**2) & (r2 <= c.max_range_m**2)
         if static_mask is not None:
             keep &= np.asarray(static_mask, dtype=bool)[::stride]
-        # Open3D's voxel means: KISS-ICP's one-point-per-voxel downsampling here made the
-        # dt 300 drift 2x worse (0.043 % vs 0.022 %). np.compress: 4x faster than p[keep]
-        kept = o3d.utility.Vector3dVector(np.asarray(np.compress(keep, p, axis=0), dtype=np.float64))
-        return o3d.geometry.PointCloud(kept).voxel_down_sample(c.map_voxel_m)
+        # voxel means: KISS-ICP's one-point-per-voxel downsampling here made the dt 300 drift
+        # 2x worse (0.043 % vs 0.022 %)
+        return open3d_voxel_means(p, c.map_voxel_m, keep)[0]
 
     def _maps_next(self) -> bool:
         """Whether the next scan goes into the map: every ``insert_every``-th registered
@@ -202,37 +205,40 @@ class ScanToMap:
         c = self.config
         return self._anchor is None or len(self.map) < c.warmup_scans or self._registered + 1 >= c.insert_every
 
-    def _insert(self, cloud, T_map_scan: np.ndarray, index: int, into_map: bool) -> None:
-        """Make scan ``index`` (at ``T_map_scan``) the guess's start and, if ``into_map``,
-        put it in the map, with normals from its own neighbours oriented towards the
-        sensor (so that averages in the map agree)."""
+    def _insert(self, cloud: np.ndarray, T_map_scan: np.ndarray, index: int, into_map: bool) -> None:
+        """Make scan ``index`` (its :meth:`_prepare` points ``cloud``, at ``T_map_scan``) the
+        guess's start and, if ``into_map``, put it in the map, with normals from its own
+        neighbours (Open3D) oriented towards the sensor (so that averages in the map agree)."""
         import open3d as o3d
 
         self._last = (index, T_map_scan)
         self._registered += 1
         if not into_map:
             return
-        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4.0 * self.config.map_voxel_m, max_nn=10))
-        cloud.orient_normals_towards_camera_location(np.zeros(3))
-        self.map.add(np.asarray(cloud.points), np.asarray(cloud.normals), T_map_scan)
+        scan = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud))
+        scan.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4.0 * self.config.map_voxel_m, max_nn=10))
+        scan.orient_normals_towards_camera_location(np.zeros(3))
+        self.map.add(np.asarray(scan.points), np.asarray(scan.normals), T_map_scan)
         self._registered = 0
 
-    def _restart(self, index: int, cloud, T_world_scan: np.ndarray) -> None:
+    def _restart(self, index: int, cloud: np.ndarray, T_world_scan: np.ndarray) -> None:
         """A new map (frame = the backend's world now) holding this scan, its anchor."""
         self.map.clear()
         self._anchor = (index, T_world_scan)
         self._insert(cloud, T_world_scan, index, into_map=True)
         self.stats.keyframes += 1
 
-    def _register(self, cloud, guess: np.ndarray) -> np.ndarray:
-        """``T_map_scan`` of the scan's ``cloud`` (sensor frame) from ``guess``: point-to-plane
+    def _register(self, cloud: np.ndarray, guess: np.ndarray) -> np.ndarray:
+        """``T_map_scan`` of the scan's :meth:`_prepare` points ``cloud`` (sensor frame),
+        downsampled again to ``source_voxel_m``, from ``guess``: point-to-plane
         ICP with a Tukey kernel onto the map (Open3D's ``registration_icp`` rule, compiled:
         :func:`~flowslam.sceneflow.refinement.compiled_icp.register_point_to_plane`, on the
         map's KD-tree kept while the map is unchanged)."""
+        from flowslam.compiled_voxels import open3d_voxel_means
         from flowslam.sceneflow.refinement.compiled_icp import register_point_to_plane
 
         c = self.config
-        source = np.asarray(cloud.voxel_down_sample(c.source_voxel_m).points)
+        source = open3d_voxel_means(cloud, c.source_voxel_m)[0]
         target, normals = self.map.target()
         T = register_point_to_plane(source, target, normals, guess, [c.max_correspondence_m], c.max_iterations,
                                     1e-4, 1e-4, kernel=c.kernel_m)
@@ -244,7 +250,7 @@ class ScanToMap:
         # a scan that only gets registered is read at source_stride: its source cloud is
         # all it needs
         cloud = self._prepare(points, static_mask, 1 if into_map else c.source_stride)
-        if len(cloud.points) < c.min_points:
+        if len(cloud) < c.min_points:
             self.stats.skipped += 1
             return None
         T_world_scan = geometry.orthonormalized(estimate(index))

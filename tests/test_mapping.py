@@ -268,3 +268,32 @@ def test_recent_voxels_are_bounded_and_a_restarted_chain_keeps_its_scan_whole():
     assert len(plain.frames[1]) == len(voxel_downsample(frames[1].points, 0.2))
     with pytest.raises(ValueError, match="dedup_window"):
         StaticMapBuilder(dedup_window=-1)
+
+
+@pytest.mark.parametrize("voxel", [0.3, 0.75, 1.0])
+def test_open3d_voxel_means_give_open3ds_voxels_and_numbers(kitti_extract, voxel):
+    """``open3d_voxel_means`` (compiled) gives the centroids (and mean normals) of Open3D's
+    ``voxel_down_sample`` bit for bit, only in voxel-key order: the same grid (the kept
+    points' minimum minus half a voxel), the same sums in point order."""
+    import open3d as o3d
+
+    from flowslam.compiled_voxels import open3d_voxel_means
+    from flowslam.datasets import open_dataset
+
+    def rows(a: np.ndarray) -> np.ndarray:
+        return a[np.lexsort(a.T[::-1])]
+
+    points = open_dataset(kitti_extract)[5].points.astype(np.float64)
+    keep = np.einsum("ij,ij->i", points, points) < 60.0**2
+    normals = np.random.default_rng(1).normal(size=points.shape)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[keep]))
+    cloud.normals = o3d.utility.Vector3dVector(normals[keep])
+    theirs = cloud.voxel_down_sample(voxel)
+    ours, our_normals = open3d_voxel_means(points, voxel, keep, normals)
+    assert len(ours) == len(theirs.points) > 1000
+    np.testing.assert_array_equal(rows(np.hstack([ours, our_normals])),
+                                  rows(np.hstack([np.asarray(theirs.points), np.asarray(theirs.normals)])))
+    keys = np.floor((ours - (points[keep].min(axis=0) - voxel / 2)) / voxel)
+    assert np.all(np.diff(keys[:, 0]) >= 0)  # key order: x first
+    empty, none = open3d_voxel_means(points, voxel, np.zeros(len(points), dtype=bool))
+    assert empty.shape == (0, 3) and none is None

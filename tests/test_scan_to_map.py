@@ -185,12 +185,15 @@ def test_registration_to_the_map_equals_open3d(kitti_extract):
         cloud = stm._prepare(ds[k].points, None)
         guess = geometry.from_euler("z", 0.01, t=[offset, 0.0, 0.0]) @ ds[k].gt_pose
         ours = stm._register(cloud, guess)
-        source = cloud.voxel_down_sample(c.source_voxel_m)
+        source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud)).voxel_down_sample(c.source_voxel_m)
+        map_points, map_normals = stm.map.cloud()
+        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(map_points))
+        target.normals = o3d.utility.Vector3dVector(map_normals)
         theirs = reg.registration_icp(
-            source, stm.map.cloud(), c.max_correspondence_m, guess,
+            source, target, c.max_correspondence_m, guess,
             reg.TransformationEstimationPointToPlane(reg.TukeyLoss(c.kernel_m)),
             reg.ICPConvergenceCriteria(relative_fitness=1e-4, relative_rmse=1e-4, max_iteration=c.max_iterations))
-        p = np.asarray(source.points)
+        p = np.asarray(source.points)  # (their order; the same voxel means as ours)
         np.testing.assert_allclose(geometry.transform_points(ours, p),
                                    geometry.transform_points(geometry.orthonormalized(np.asarray(theirs.transformation)), p),
                                    atol=1e-9)

@@ -155,13 +155,14 @@ class CloudStore:
 
 
 def downsample(points: np.ndarray, config: VerificationConfig, seed: int = 0) -> np.ndarray:
-    """Voxel-downsample (N,3) points (m) within ``max_range_m`` to at most ``max_points``."""
-    import open3d as o3d
+    """Voxel-downsample (N,3) points (m) within ``max_range_m`` to at most ``max_points``:
+    Open3D's ``voxel_down_sample`` centroids (the same voxels and numbers, compiled, in
+    voxel-key order: :func:`flowslam.compiled_voxels.open3d_voxel_means`), then a seeded
+    random subset of them where there are more."""
+    from flowslam.compiled_voxels import open3d_voxel_means
 
     p = np.asarray(points, dtype=np.float64)
-    p = p[np.einsum("ij,ij->i", p, p) < config.max_range_m**2]
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
-    q = np.asarray(cloud.voxel_down_sample(config.voxel_m).points)
+    q, _ = open3d_voxel_means(p, config.voxel_m, np.einsum("ij,ij->i", p, p) < config.max_range_m**2)
     if len(q) > config.max_points:
         q = q[np.random.default_rng(seed).choice(len(q), config.max_points, replace=False)]
     return q
