@@ -7,6 +7,8 @@ plus a handful of gathers and scatters; here each key goes through a hash table 
 (:mod:`flowslam.compiled_hash`; first come, first numbered), only the V distinct keys are
 sorted (V is a fraction of N at map resolutions), and the sums run in one pass in point
 order, as ``np.bincount`` sums.
+:func:`open3d_voxel_means` gives Open3D's ``voxel_down_sample`` (its grid, its centroids
+and mean normals to the bit) in voxel-key order, for the loop closer and scan-to-map.
 Imported on first use, so that a command that never groups points never loads numba.
 
 Units: those of the points (m); keys are int64.
