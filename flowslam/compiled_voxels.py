@@ -19,31 +19,14 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from flowslam.compiled_hash import empty_table, find_slot
+from flowslam.compiled_hash import number_keys
 
 __all__ = ["group_means", "grouped_keys", "open3d_voxel_means", "packed_voxel_keys"]
 
 
 @njit(cache=True, nogil=True)
-def _first_met(keys):
-    """(group of each key numbered in the order first met, the distinct keys in that order)."""
-    slot_keys, slot_group, shift = empty_table(keys.shape[0])
-    group = np.empty(keys.shape[0], np.int64)
-    distinct = np.empty(keys.shape[0], np.int64)
-    count = 0
-    for i in range(keys.shape[0]):
-        slot = find_slot(slot_keys, slot_group, shift, keys[i])
-        if slot_group[slot] == -1:
-            slot_keys[slot], slot_group[slot] = keys[i], count
-            distinct[count] = keys[i]
-            count += 1
-        group[i] = slot_group[slot]
-    return group, distinct[:count]
-
-
-@njit(cache=True, nogil=True)
 def _grouped(keys):
-    group, distinct = _first_met(keys)
+    _, _, _, group, distinct = number_keys(keys)  # numbered in the order first met
     order = np.argsort(distinct)  # distinct keys: the sort needs no stability
     rank = np.empty(distinct.shape[0], np.int64)
     for r in range(order.shape[0]):
@@ -91,11 +74,13 @@ def packed_voxel_keys(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray
 
 
 @njit(cache=True, nogil=True)
-def _means(inverse, counts, values):
+def _means(inverse, counts, values, rows):
+    """(V, K) mean per group of the rows ``values[rows[a]]`` (group ``inverse[a]``), summed in
+    the order of ``rows``."""
     out = np.zeros((counts.shape[0], values.shape[1]))
-    for i in range(inverse.shape[0]):
+    for a in range(rows.shape[0]):
         for j in range(values.shape[1]):
-            out[inverse[i], j] += values[i, j]
+            out[inverse[a], j] += values[rows[a], j]
     for v in range(counts.shape[0]):
         for j in range(values.shape[1]):
             out[v, j] /= counts[v]
@@ -106,8 +91,9 @@ def group_means(inverse: np.ndarray, counts: np.ndarray, values: np.ndarray) -> 
     """(V, K) mean of the (N, K) ``values`` per group (``inverse``, ``counts`` of
     :func:`grouped_keys`), summed in point order: ``np.bincount(inverse, values[:, j]) /
     counts``, column by column, to the bit."""
+    values = np.ascontiguousarray(values, dtype=np.float64)
     return _means(np.ascontiguousarray(inverse, dtype=np.int64), np.ascontiguousarray(counts, dtype=np.int64),
-                 np.ascontiguousarray(values, dtype=np.float64))
+                  values, np.arange(len(values)))
 
 
 @njit(cache=True, nogil=True)
@@ -142,18 +128,6 @@ def _open3d_keys(points, keep, voxel_size):
     return kept[:m], keys, fits
 
 
-@njit(cache=True, nogil=True)
-def _kept_means(kept, inverse, counts, columns):
-    out = np.zeros((counts.shape[0], columns.shape[1]))
-    for a in range(kept.shape[0]):
-        for j in range(columns.shape[1]):
-            out[inverse[a], j] += columns[kept[a], j]
-    for v in range(counts.shape[0]):
-        for j in range(columns.shape[1]):
-            out[v, j] /= counts[v]
-    return out
-
-
 def open3d_voxel_means(points: np.ndarray, voxel_size: float, keep: np.ndarray | None = None,
                        normals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """``(centroids (V,3), mean normals (V,3) or None)``: Open3D's ``voxel_down_sample`` of the
@@ -172,5 +146,5 @@ def open3d_voxel_means(points: np.ndarray, voxel_size: float, keep: np.ndarray |
     if not fits:
         raise ValueError(f"voxel size {voxel_size} m is too small for the points' extent")
     inverse, counts = grouped_keys(keys)
-    means = _kept_means(kept, inverse, counts, np.ascontiguousarray(columns))
+    means = _means(inverse, counts, np.ascontiguousarray(columns), kept)
     return np.ascontiguousarray(means[:, :3]), None if normals is None else np.ascontiguousarray(means[:, 3:])

@@ -227,18 +227,26 @@ def _moved(T, x):
 
 
 @njit(cache=True, nogil=True)
-def _register(p, T, stages, max_iterations, relative_fitness, relative_rmse,
+def _register(p, T, stages, max_iterations, relative_fitness, relative_rmse, normals, kernel,
               ordered, start, end, axis, left, right, lo, hi):
+    """The ICP loop of :func:`register` and :func:`register_point_to_plane`: Open3D's
+    correspondences and stopping rule per stage; each update point-to-point (Umeyama)
+    when ``normals`` is empty, else point-to-plane with a Tukey kernel of ``kernel`` (m;
+    <= 0: the stage's distance) on the tree-ordered ``normals``."""
     n = p.shape[0]
     src = np.empty(n, np.int64)
     dst = np.empty(n, np.int64)
     stack = np.empty(2 * len(start) + 2, np.int64)
     hints = np.full(n, -1, np.int64)
+    plane = normals.shape[0] > 0
     for max_dist in stages:
         x = _moved(T, p)
         m, fitness, rmse = _match(x, max_dist, ordered, start, end, axis, left, right, lo, hi, stack, src, dst, hints)
         for _ in range(max_iterations):
-            update = _rigid(x, ordered, src, dst, m)
+            if plane:
+                update = _plane_update(x, ordered, normals, src, dst, m, max_dist if kernel <= 0 else kernel)
+            else:
+                update = _rigid(x, ordered, src, dst, m)
             T = update @ T
             x = _moved(update, x)
             previous_fitness, previous_rmse = fitness, rmse
@@ -265,7 +273,11 @@ def register(p: np.ndarray, target: IcpTarget, T: np.ndarray, stages, max_iterat
     ordered, _, start, end, axis, left, right, lo, hi = target._tree
     return _register(np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(T, dtype=np.float64),
                      np.asarray(stages, dtype=np.float64), int(max_iterations), float(relative_fitness),
-                     float(relative_rmse), ordered, start, end, axis, left, right, lo, hi)
+                     float(relative_rmse), _NO_NORMALS, 0.0, ordered, start, end, axis, left, right, lo, hi)
+
+
+_NO_NORMALS = np.zeros((0, 3))
+"""The normals argument of :func:`_register` for point-to-point updates."""
 
 
 # ------------------------------------------------------------------ point-to-plane
@@ -365,28 +377,6 @@ def _plane_update(x, ordered, normals, src, dst, m, kernel):
     return _pose_from_twist(_ldlt_solve(JTJ, -JTr))
 
 
-@njit(cache=True, nogil=True)
-def _register_plane(p, T, stages, max_iterations, relative_fitness, relative_rmse, normals, kernel,
-                    ordered, start, end, axis, left, right, lo, hi):
-    n = p.shape[0]
-    src = np.empty(n, np.int64)
-    dst = np.empty(n, np.int64)
-    stack = np.empty(2 * len(start) + 2, np.int64)
-    hints = np.full(n, -1, np.int64)
-    for max_dist in stages:
-        x = _moved(T, p)
-        m, fitness, rmse = _match(x, max_dist, ordered, start, end, axis, left, right, lo, hi, stack, src, dst, hints)
-        for _ in range(max_iterations):
-            update = _plane_update(x, ordered, normals, src, dst, m, max_dist if kernel <= 0 else kernel)
-            T = update @ T
-            x = _moved(update, x)
-            previous_fitness, previous_rmse = fitness, rmse
-            m, fitness, rmse = _match(x, max_dist, ordered, start, end, axis, left, right, lo, hi, stack, src, dst, hints)
-            if abs(previous_fitness - fitness) < relative_fitness and abs(previous_rmse - rmse) < relative_rmse:
-                break
-    return T
-
-
 def register_point_to_plane(p: np.ndarray, target: IcpTarget, normals: np.ndarray, T: np.ndarray, stages,
                             max_iterations: int, relative_fitness: float = 1e-6,
                             relative_rmse: float = 1e-6, kernel: float | None = None) -> np.ndarray:
@@ -401,10 +391,10 @@ def register_point_to_plane(p: np.ndarray, target: IcpTarget, normals: np.ndarra
     thread), so the numbers agree to rounding."""
     ordered, order, start, end, axis, left, right, lo, hi = target._tree
     tree_normals = np.ascontiguousarray(np.asarray(normals, dtype=np.float64)[order])
-    return _register_plane(np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(T, dtype=np.float64),
-                           np.asarray(stages, dtype=np.float64), int(max_iterations), float(relative_fitness),
-                           float(relative_rmse), tree_normals, -1.0 if kernel is None else float(kernel),
-                           ordered, start, end, axis, left, right, lo, hi)
+    return _register(np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(T, dtype=np.float64),
+                     np.asarray(stages, dtype=np.float64), int(max_iterations), float(relative_fitness),
+                     float(relative_rmse), tree_normals, -1.0 if kernel is None else float(kernel),
+                     ordered, start, end, axis, left, right, lo, hi)
 
 
 @njit(cache=True, nogil=True)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from flowslam.compiled_hash import empty_table, find_slot
+from flowslam.compiled_hash import find_slot, grouped_positions, number_keys
 
 __all__ = ["gathered_covariances", "knn_within", "near_any_points", "neighbourhood_normals"]
 
@@ -142,6 +142,20 @@ def _cell_key(p, lo, cell):
 
 
 @njit(cache=True, nogil=True)
+def _cubes(points, rows, lo, cell):
+    """``points[rows]`` bucketed by cube of edge ``cell`` counted from ``lo``: (the hash
+    table of packed cube keys -- slot keys, slot cube numbers, shift --, the cubes' keys
+    (numbered in the order first met), start (cubes + 1,) and members (the rows, by cube,
+    in row order): cube c holds ``members[start[c]:start[c + 1]]``, each row's cube)."""
+    keys = np.empty(rows.shape[0], np.int64)
+    for a in range(rows.shape[0]):
+        keys[a] = _cell_key(points[rows[a]], lo, cell)
+    slot_keys, slot_cell, shift, cube_of, cube_keys = number_keys(keys)
+    start, order = grouped_positions(cube_of, cube_keys.shape[0])
+    return slot_keys, slot_cell, shift, cube_keys, start, rows[order], cube_of
+
+
+@njit(cache=True, nogil=True)
 def _near_any(points, x, radius):
     n = x.shape[0]
     hit = np.zeros(n, np.bool_)
@@ -164,26 +178,8 @@ def _near_any(points, x, radius):
         if (lo[0] <= points[j, 0] <= hi[0]) and (lo[1] <= points[j, 1] <= hi[1]) and (lo[2] <= points[j, 2] <= hi[2]):
             inside[m] = j
             m += 1
-    slot_keys, slot_cell, shift = empty_table(m)
-    cell_of = np.empty(m, np.int64)
-    cells = 0
-    for a in range(m):
-        key = _cell_key(points[inside[a]], lo, radius)
-        slot = find_slot(slot_keys, slot_cell, shift, key)
-        if slot_cell[slot] == -1:
-            slot_keys[slot], slot_cell[slot] = key, cells
-            cells += 1
-        cell_of[a] = slot_cell[slot]
-    start = np.zeros(cells + 1, np.int64)
-    for a in range(m):
-        start[cell_of[a] + 1] += 1
-    for c in range(cells):
-        start[c + 1] += start[c]
-    fill = start[:-1].copy()
-    members = np.empty(m, np.int64)
-    for a in range(m):
-        members[fill[cell_of[a]]] = inside[a]
-        fill[cell_of[a]] += 1
+    inside = inside[:m]
+    slot_keys, slot_cell, shift, _, start, members, _ = _cubes(points, inside, lo, radius)
     r2 = radius * radius
     for i in range(n):
         ci = np.int64(np.floor((x[i, 0] - lo[0]) / radius))
@@ -235,41 +231,12 @@ def _knn_within(points, idx, radius, k):
     for j in range(n_points):
         for d in range(3):
             lo[d] = min(lo[d], points[j, d])
-    # the points bucketed by cube of edge ``radius`` (hash table of packed cube keys)
-    slot_keys, slot_cell, shift = empty_table(n_points)
-    cell_of = np.empty(n_points, np.int64)
-    coords = np.empty((n_points, 3), np.int64)  # per cube (first ``cells`` rows)
-    cells = 0
-    for j in range(n_points):
-        key = _cell_key(points[j], lo, radius)
-        slot = find_slot(slot_keys, slot_cell, shift, key)
-        if slot_cell[slot] == -1:
-            slot_keys[slot], slot_cell[slot] = key, cells
-            coords[cells, 0], coords[cells, 1], coords[cells, 2] = key >> 42, (key >> 21) & 0x1FFFFF, key & 0x1FFFFF
-            cells += 1
-        cell_of[j] = slot_cell[slot]
-    start = np.zeros(cells + 1, np.int64)
-    for j in range(n_points):
-        start[cell_of[j] + 1] += 1
-    for c in range(cells):
-        start[c + 1] += start[c]
-    fill = start[:-1].copy()
-    members = np.empty(n_points, np.int64)
-    for j in range(n_points):
-        members[fill[cell_of[j]]] = j
-        fill[cell_of[j]] += 1
+    # the points bucketed by cube of edge ``radius``
+    slot_keys, slot_cell, shift, cube_keys, start, members, cell_of = _cubes(points, np.arange(n_points), lo, radius)
+    cells = cube_keys.shape[0]
     # the queries grouped by cube: each cube's 27-cube neighbourhood is gathered once
     n = idx.shape[0]
-    qstart = np.zeros(cells + 1, np.int64)
-    for i in range(n):
-        qstart[cell_of[idx[i]] + 1] += 1
-    for c in range(cells):
-        qstart[c + 1] += qstart[c]
-    qfill = qstart[:-1].copy()
-    queries = np.empty(n, np.int64)
-    for i in range(n):
-        queries[qfill[cell_of[idx[i]]]] = i
-        qfill[cell_of[idx[i]]] += 1
+    qstart, queries = grouped_positions(cell_of[idx], cells)
     nb = np.full((n, k), n_points, np.int64)
     dist = np.full((n, k), np.inf)
     best = np.empty(k)
@@ -280,7 +247,8 @@ def _knn_within(points, idx, radius, k):
             continue
         count = 0
         for s in range(27):
-            a, b, c3 = coords[c, 0] + s // 9 - 1, coords[c, 1] + (s // 3) % 3 - 1, coords[c, 2] + s % 3 - 1
+            key = cube_keys[c]
+            a, b, c3 = (key >> 42) + s // 9 - 1, ((key >> 21) & 0x1FFFFF) + (s // 3) % 3 - 1, (key & 0x1FFFFF) + s % 3 - 1
             if a < 0 or b < 0 or c3 < 0:
                 continue
             other = slot_cell[find_slot(slot_keys, slot_cell, shift, (a << 42) | (b << 21) | c3)]

@@ -171,15 +171,11 @@ def _icp(src_points: np.ndarray, target: IcpTarget, normals: np.ndarray, T_init:
     """Point-to-plane ICP (Tukey kernel) of ``src_points`` (frame k-1) onto the planar
     target points (``target``, frame k) and their ``normals``, one stage per
     ``correspondence_m``, from ``T_init``; the refined ``T_{k,k-1}`` (4,4). Open3D's
-    ``registration_icp`` rule, compiled
+    ``registration_icp`` rule with its convergence criteria as before (relative changes
+    of 1e-6, the function's defaults), compiled
     (:func:`~flowslam.sceneflow.refinement.compiled_icp.register_point_to_plane`: one
     KD-tree for both stages and the snapping, Python's GIL released)."""
-    return register_point_to_plane(src_points, target, normals, T_init, c.correspondence_m, c.max_iterations,
-                                   ICP_RELATIVE_CHANGE, ICP_RELATIVE_CHANGE)
-
-
-ICP_RELATIVE_CHANGE = 1e-6
-"""An ICP stage stops when its fitness and inlier RMSE (m) each change by less."""
+    return register_point_to_plane(src_points, target, normals, T_init, c.correspondence_m, c.max_iterations)
 
 
 def _fitness(target_tree, x: np.ndarray, reach: float) -> float:
