@@ -32,6 +32,7 @@ import numpy as np
 
 from flowslam import geometry
 from flowslam.config import FlowOdometryConfig, SsfConfig
+from flowslam.errors import InputError
 from flowslam.frame import Frame
 from flowslam.flow_odometry import FlowPoseEstimate, FlowToPose
 from flowslam.sceneflow.refinement.static import RefinedFlow
@@ -142,6 +143,10 @@ class NetworkStage:
         self.weights_info = {"path": str(path), "sha256": payload["sha256"]}
         """Which weights run (recorded in ``run.json``)."""
         self.model = build_model(payload).to(self.device)
+        try:
+            self.model.crop_grid(c.grid_half_extent_m)
+        except ValueError as err:
+            raise InputError("ssf.network.grid_half_extent_m", str(err)) from None
         if self.device.type == "cpu":
             from flowslam.sceneflow.network.model import tune_cpu_allocator
 

@@ -129,6 +129,16 @@ def test_unknown_frontend_and_bad_config(kitti_extract, tmp_path):
     assert_one_line_error(run(kitti_extract, tmp_path / "r", "-c", cfg), str(cfg), "max_range")
 
 
+def test_misaligned_network_grid_crop(kitti_extract, tmp_path):
+    """``ssf.network.grid_half_extent_m`` must take whole coarsest U-Net cells (12.8 m) off the
+    shipped weights' 51.2 m grid: one line naming the option and the allowed step."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("ssf: {network: {grid_half_extent_m: 40.0}}\n")
+    line = assert_one_line_error(run(kitti_extract, tmp_path / "r", "-f", "ssf", "-c", cfg),
+                                 "ssf.network.grid_half_extent_m", "12.8 m")
+    assert "40 m" in line
+
+
 def test_debug_shows_the_traceback(tmp_path):
     proc = flowslam("--debug", "run", "--no-progress", "-o", tmp_path / "r", tmp_path / "nope")
     assert proc.returncode != 0 and "Traceback" in proc.stderr

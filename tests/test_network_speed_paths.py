@@ -188,6 +188,37 @@ def test_network_stage_equals_eager_model(kitti_extract):
     np.testing.assert_allclose(state.dynamic_prob, prob, rtol=0, atol=PROB_ATOL)
 
 
+def test_network_stage_grid_crop(kitti_extract):
+    """``ssf.network.grid_half_extent_m: 38.4`` on a real 64-beam pair: inside the square the
+    flow and the static mask stay close to the full grid's (the U-Net sees less context
+    near the edge), and the points beyond it are static candidates."""
+    from flowslam.datasets import open_dataset
+    from flowslam.frontends.ssf_stages import NetworkStage, PairState
+
+    ds = open_dataset(kitti_extract)
+    frames = [ds[i] for i in range(5)]
+    poses = [f.gt_pose for f in frames]
+    states = {}
+    threads = torch.get_num_threads()
+    try:
+        for crop in (None, 38.4):
+            stage = NetworkStage(SsfConfig(network={"num_threads": 1, "grid_half_extent_m": crop}))
+            assert stage.model.grid.size == (256 if crop is None else 192)
+            states[crop] = PairState(prev=frames[3], frame=frames[4], history=frames[:4], history_poses=poses[:4],
+                                     T_world_guess=poses[4])
+            stage.run(states[crop])
+    finally:
+        torch.set_num_threads(threads)
+    moved = geometry.transform_points(geometry.inv(poses[4]) @ poses[3], frames[3].points)  # in scan 4's grid
+    inside = (np.abs(moved[:, :2]) < 38.0).all(1)
+    beyond = ~(np.abs(moved[:, :2]) < 40.4).all(1)
+    assert inside.sum() > 100_000 and beyond.sum() > 1_000
+    full, cropped = states[None], states[38.4]
+    assert np.median(np.linalg.norm(cropped.flow - full.flow, axis=1)[inside]) < 0.01
+    assert (cropped.static == full.static)[inside].mean() > 0.95
+    assert cropped.static[beyond].all() and not full.static[beyond].all()
+
+
 def _stage_states_per_device(kitti_extract, option_sets: list[dict]) -> dict:
     """The network stage's pair state (KITTI frames 3 -> 4, GT history) per device type."""
     from flowslam.datasets import open_dataset

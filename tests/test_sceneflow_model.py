@@ -184,6 +184,58 @@ def test_config_validation():
         ModelConfig(bogus=1)
 
 
+def _decoder_inputs(net: SceneFlowNet, frames: list[torch.Tensor]) -> tuple:
+    """The network's output and the (point, offset, batch, Z-order code, batch size) inputs of its decoder."""
+    seen = []
+    forward = net.decoder.forward
+    net.decoder.forward = lambda *args: seen.append(args) or forward(*args)
+    try:
+        with torch.no_grad():
+            out = net(frames)
+    finally:
+        del net.decoder.forward
+    return out, seen[0]
+
+
+def test_grid_crop_keeps_cells_inputs_and_order():
+    """An inference crop (``crop_grid``) runs the U-Net on the inner square only: the points
+    inside keep their metric cells, their position inputs and their Z-order; those beyond
+    get the "outside" outputs; a misaligned crop is refused; no crop is the trained grid."""
+    torch.manual_seed(0)
+    net = SceneFlowNet(ModelConfig(num_frames=3, **{**SMALL, "half_extent": 25.6})).eval()
+    torch.nn.init.normal_(net.decoder.head[-1].weight)
+    assert net.coarsest_cell_m == pytest.approx(12.8)
+    frames = [_cloud(900, t, extent=20.0) for t in range(3)]
+    full, (_, full_offsets, _, full_code, _) = _decoder_inputs(net, frames)
+    cropped_net = SceneFlowNet(net.config).eval()
+    cropped_net.load_state_dict(net.state_dict())
+    cropped_net.crop_grid(12.8)
+    assert cropped_net.grid.size == 64 and cropped_net.grid.half_extent == 25.6
+    cropped, (_, offsets, _, code, _) = _decoder_inputs(cropped_net, frames)
+    src = frames[1]
+    inside = (src[:, :2].abs() < 12.8).all(1)
+    assert torch.equal(cropped["valid"], inside) and inside.any() and (~inside).any()
+    assert (cropped["flow"][~inside] == 0).all() and (cropped["dynamic_logit"][~inside] == OUTSIDE_LOGIT).all()
+    # the same cells (metric centres) and the same inputs for the points inside
+    g, c = net.grid, cropped_net.grid
+    torch.testing.assert_close(c.centres(*c.cells(src[inside])[:2]), g.centres(*g.cells(src[inside])[:2]))
+    index, _ = index_points([frames], g)
+    cropped_index, _ = index_points([frames], c)
+    keep = (index.points[:, :2].abs() < 12.8).all(1)
+    torch.testing.assert_close(cropped_net.pillars.point_inputs(cropped_index), net.pillars.point_inputs(index)[keep])
+    kept_rows = inside[full["valid"]]  # the full grid's decoder rows of the points inside the crop
+    torch.testing.assert_close(offsets, full_offsets[kept_rows])
+    assert torch.equal(code, full_code[kept_rows])  # the decoder scans them in the same order
+    assert not torch.allclose(cropped["flow"][inside], full["flow"][inside])  # but the U-Net saw less
+    for bad in (20.0, 30.0, 0.0):
+        with pytest.raises(ValueError, match="grid crop"):
+            cropped_net.crop_grid(bad)
+    for none in (None, 25.6):
+        cropped_net.crop_grid(none)
+        again, _ = _decoder_inputs(cropped_net, frames)
+        assert cropped_net.grid == net.grid and torch.equal(again["flow"], full["flow"])
+
+
 def test_float64_and_device_agnostic_code():
     net = SceneFlowNet(ModelConfig(num_frames=2, **SMALL)).double().eval()
     with torch.no_grad():

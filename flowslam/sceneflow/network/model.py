@@ -43,6 +43,7 @@ Residual-flow convention: with ``p`` a source point in its own sensor frame and
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Literal
 
@@ -182,6 +183,33 @@ class SceneFlowNet(nn.Module):
         n += sum(b.numel() * b.element_size() for b in self.buffers())
         return n / 1e6
 
+    def crop_grid(self, half_extent: float | None) -> SceneFlowNet:
+        """Run on the square ``[-half_extent, half_extent)`` around the sensor instead of the
+        trained grid (``BEVGrid.crop``; None: the trained grid again). The crop must take
+        whole cells of the U-Net's coarsest level off each side (``coarsest_cell_m``), so
+        that every level's cells stay where they were; points beyond it get no residual flow
+        and the logit ``OUTSIDE_LOGIT`` (static). Inference only: the convolutions of a
+        cropped grid see zeros where the trained grid had the cells beyond, so the outputs
+        change a little everywhere (not a training option)."""
+        full = self.config.half_extent
+        if half_extent is not None:
+            cells = (full - half_extent) / self.coarsest_cell_m
+            if not (0 < half_extent <= full) or abs(cells - round(cells)) > 1e-6:
+                raise ValueError(
+                    f"grid crop {half_extent:g} m: must be in (0, {full:g}] and take a multiple of "
+                    f"{self.coarsest_cell_m:g} m (the coarsest U-Net cell) off the trained {full:g} m"
+                )
+            if abs(half_extent - full) < 1e-9:
+                half_extent = None
+        self.grid = dataclasses.replace(self.config.grid, crop=half_extent)
+        self.pillars.grid = self.grid
+        return self
+
+    @property
+    def coarsest_cell_m(self) -> float:
+        """Side (m) of a cell of the U-Net's coarsest level."""
+        return self.config.voxel_size * self.config.stem_stride * self.backbone.stride
+
     def fold_batchnorm(self) -> SceneFlowNet:
         """Switch to eval mode and fold every BatchNorm into the layer before it (faster
         inference, same outputs up to float rounding). Irreversible: do not train afterwards."""
@@ -240,8 +268,8 @@ class SceneFlowNet(nn.Module):
         src, tgt = T - 2, T - 1
         pts, b, ix, iy = index.points[sel], index.batch[sel], index.ix[sel], index.iy[sel]
         cell = cfg.voxel_size * cfg.stem_stride
-        u = (pts[:, 0] + g.half_extent) / cell - 0.5  # continuous U-Net cell coordinates (centres at integers)
-        v = (pts[:, 1] + g.half_extent) / cell - 0.5
+        u = (pts[:, 0] + g.extent) / cell - 0.5  # continuous U-Net cell coordinates (centres at integers)
+        v = (pts[:, 1] + g.extent) / cell - 0.5
         unet = feats.reshape(B * T, feats.shape[2], feats.shape[3], feats.shape[4])
         pillars = dense.reshape(-1, dense.shape[-1])
         point_in = torch.cat(
@@ -259,7 +287,7 @@ class SceneFlowNet(nn.Module):
             [raw[:, 3:5], torch.stack([u - u.round(), v - v.round()], 1), raw[:, 5:8], raw[:, 2:3]], 1
         )
         # Z-order at 1/8 of the pillar size, so that ties (and with them any dependence on
-        # the input order) are rare
+        # the input order) are rare; from the trained grid's corner, cropped or not
         origin = pts.new_tensor([-g.half_extent, -g.half_extent, g.z_min])
         q = torch.floor((pts - origin) / (cfg.voxel_size / MORTON_SUBDIVISION)).long().clamp(min=0)
         return point_in, offset_in, morton_code(q[:, 0], q[:, 1], q[:, 2])

@@ -4,11 +4,11 @@ Frames and units
 ----------------
 All points are in metres, in the sensor frame of the *newest* scan (the caller has
 already compensated the older scans with its own ego-motion estimate). The grid is
-a square of ``2 * half_extent`` metres centred on that sensor, cells of
-``voxel_size`` metres, ``z`` kept in ``[z_min, z_max)``. Row ``iy`` indexes y, column
-``ix`` indexes x::
+a square of ``2 * half_extent`` metres centred on that sensor (``2 * crop`` with an
+inference crop, ``BEVGrid``), cells of ``voxel_size`` metres, ``z`` kept in
+``[z_min, z_max)``. Row ``iy`` indexes y, column ``ix`` indexes x::
 
-    ix = floor((x + half_extent) / voxel_size),   iy = floor((y + half_extent) / voxel_size)
+    ix = floor((x + extent) / voxel_size),   iy = floor((y + extent) / voxel_size)
 
 Layout of the dense grid: **(B, T, H, W, C)**, contiguous, channels last: time is an
 axis of its own (oldest frame at t = 0, newest at t = T-1) and every (b, t, iy, ix)
@@ -33,22 +33,35 @@ offset to the mean of the cell's points (3), time index (normalised)."""
 
 @dataclass(frozen=True)
 class BEVGrid:
-    """A square bird's-eye-view grid around the newest sensor (metres)."""
+    """A square bird's-eye-view grid around the newest sensor (metres).
+
+    ``half_extent`` is the grid the network was trained on: it also scales the points'
+    position inputs (``PillarEncoder.point_inputs``) and places the decoder's Z-order
+    origin at its corner. ``crop`` (inference only, None: none) makes the grid cover only
+    ``[-crop, crop)`` -- its cells the same as the full grid's there, the inputs scaled as
+    before -- so that the convolutions run on the square around the sensor alone; points
+    beyond are outside (``inside`` False)."""
 
     half_extent: float = 51.2
     voxel_size: float = 0.4
     z_min: float = -3.0
     z_max: float = 5.0
+    crop: float | None = None
+
+    @property
+    def extent(self) -> float:
+        """Half-width (m) of the square the cells cover: ``crop``, or ``half_extent``."""
+        return self.half_extent if self.crop is None else self.crop
 
     @property
     def size(self) -> int:
         """Cells per side (H = W)."""
-        return int(round(2 * self.half_extent / self.voxel_size))
+        return int(round(2 * self.extent / self.voxel_size))
 
     def cells(self, points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``(ix, iy, inside)`` of (N,3) points; ``inside`` also requires z in [z_min, z_max)."""
         n = self.size
-        q = torch.floor((points[:, :2] + self.half_extent) / self.voxel_size).long()
+        q = torch.floor((points[:, :2] + self.extent) / self.voxel_size).long()
         ix, iy = q[:, 0], q[:, 1]
         z = points[:, 2]
         inside = (ix >= 0) & (ix < n) & (iy >= 0) & (iy < n) & (z >= self.z_min) & (z < self.z_max)
@@ -57,7 +70,7 @@ class BEVGrid:
     def centres(self, ix: Tensor, iy: Tensor, dtype: torch.dtype = torch.float32) -> Tensor:
         """(N,2) x, y of cell centres (m)."""
         c = torch.stack([ix, iy], 1).to(dtype) + 0.5
-        return c * self.voxel_size - self.half_extent
+        return c * self.voxel_size - self.extent
 
 
 @dataclass
