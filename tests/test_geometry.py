@@ -64,3 +64,10 @@ def test_rotation_angle_precise_for_tiny_and_large_angles():
     for angle in [1e-9, 1e-6, 0.3, np.pi - 1e-6]:
         T = g.make_T(Rotation.from_rotvec(angle * np.array([1.0, -2.0, 2.0]) / 3.0).as_matrix())
         assert g.rotation_angle(T) == pytest.approx(angle, rel=1e-6)
+
+
+def test_row_norms_equal_numpy_bit_for_bit():
+    rng = np.random.default_rng(3)
+    for shape, scale in [((10_000, 3), 40.0), ((5_000, 2), 1e-3), ((7, 3), 1e6), ((0, 3), 1.0)]:
+        v = rng.normal(0.0, scale, shape)
+        np.testing.assert_array_equal(g.row_norms(v), np.linalg.norm(v, axis=1))

@@ -206,6 +206,33 @@ MAX_CELLS_PER_AXIS = (1 << 21) - 8
 """Cubes per axis the packed keys of :func:`near_any_points` can count (21 bits, margins)."""
 
 
+@njit(cache=True, nogil=True)
+def _span(x):
+    """(all finite, max - min per column) of (N,3) ``x`` (N >= 1), in one pass (the span
+    undefined when not all finite)."""
+    lo = x[0].copy()
+    hi = x[0].copy()
+    for i in range(x.shape[0]):
+        for d in range(3):
+            v = x[i, d]
+            if not np.isfinite(v):
+                return False, hi - lo
+            if v < lo[d]:
+                lo[d] = v
+            elif v > hi[d]:
+                hi[d] = v
+    return True, hi - lo
+
+
+def _fits_cubes(x: np.ndarray, radius: float) -> bool:
+    """Whether (N,3) ``x`` (N >= 1) is finite and spans at most ``MAX_CELLS_PER_AXIS`` cubes of
+    edge ``radius`` (> 0) on every axis (with margins)."""
+    if not radius > 0:
+        return False
+    finite, span = _span(x)
+    return bool(finite) and not np.any(span / radius + 4 > MAX_CELLS_PER_AXIS)
+
+
 def near_any_points(points: np.ndarray, x: np.ndarray, radius: float) -> np.ndarray | None:
     """(M,) bool: some row of ``points`` (N,3) lies closer than ``radius`` to each query
     ``x`` (M,3), same frame and units; None when the queries span more than
@@ -216,7 +243,7 @@ def near_any_points(points: np.ndarray, x: np.ndarray, radius: float) -> np.ndar
     x = np.ascontiguousarray(x, dtype=np.float64)
     if len(x) == 0 or len(points) == 0:
         return np.zeros(len(x), dtype=bool)
-    if not radius > 0 or not np.isfinite(x).all() or np.any(np.ptp(x, axis=0) / radius + 4 > MAX_CELLS_PER_AXIS):
+    if not _fits_cubes(x, radius):
         return None  # (non-finite queries: the caller's KD-tree refuses them, as before)
     return _near_any(np.ascontiguousarray(points, dtype=np.float64), x, float(radius))
 
@@ -299,6 +326,6 @@ def knn_within(points: np.ndarray, idx: np.ndarray, radius: float, k: int) -> tu
     idx = np.ascontiguousarray(idx, dtype=np.int64)
     if len(idx) == 0 or k == 0:
         return np.zeros((len(idx), k), np.int64), np.zeros((len(idx), k))
-    if not radius > 0 or not np.isfinite(points).all() or np.any(np.ptp(points, axis=0) / radius + 4 > MAX_CELLS_PER_AXIS):
+    if not _fits_cubes(points, radius):
         return None
     return _knn_within(points, idx, float(radius), k)

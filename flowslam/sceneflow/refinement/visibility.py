@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 from flowslam.config.ssf import MotionEvidenceConfig
-from flowslam.geometry import inv, transform_points
+from flowslam.geometry import inv, row_norms, transform_points
 from flowslam.sceneflow.refinement.clusters import (
     LocalGround,
     ScanSurface,
@@ -48,7 +48,7 @@ __all__ = ["RangeImage", "baseline_window_margins", "spherical", "geometric_move
 
 def spherical(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Azimuth (deg, -180..180), elevation (deg) and range (m) of (N,3) points."""
-    r = np.linalg.norm(points, axis=1)
+    r = row_norms(points)
     az = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
     el = np.degrees(np.arcsin(np.clip(points[:, 2] / np.maximum(r, 1e-9), -1.0, 1.0)))
     return az, el, r
@@ -264,7 +264,7 @@ def slow_movers(
         margin, relative = _vacated_margins(x, c)
         front, where = old_image.in_front(x, margin, relative)
         # only just behind what left: farther behind is what its leaving revealed
-        front &= np.linalg.norm(x - where, axis=1) <= c.baseline_vacated_max_m
+        front &= row_norms(x - where) <= c.baseline_vacated_max_m
         ask = np.flatnonzero(front & ~free)
         if ask.size:
             free[ask] = source_image.sees_beyond(transform_points(inv(T_old_source), where[ask]),
@@ -286,7 +286,7 @@ def _vacated_margins(x: np.ndarray, c: MotionEvidenceConfig) -> tuple:
     windowed test's beyond ``baseline_vacated_window_from_m``."""
     if c.baseline_vacated_window_from_m is None:
         return None, None
-    far = np.linalg.norm(x, axis=1) >= c.baseline_vacated_window_from_m
+    far = row_norms(x) >= c.baseline_vacated_window_from_m
     window_margin, window_relative = baseline_window_margins(c)
     return np.where(far, window_margin, c.margin_m), np.where(far, window_relative, c.relative_margin)
 
