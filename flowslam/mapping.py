@@ -392,7 +392,7 @@ class DynamicPoints:
         pts = np.asarray(points_sensor, dtype=np.float64).reshape(-1, 3)
         ids = np.full(len(pts), -1, np.int64) if instance_ids is None else np.asarray(instance_ids).reshape(-1)
         inten = _intensity_or_zeros(intensity, len(pts))
-        finite = np.isfinite(pts).all(axis=1)
+        finite = geometry.finite_rows(pts)
         pts, ids, inten = pts[finite], ids[finite], inten[finite]
         keep = first_per_cell(pts, self.voxel_size, ids)
         return self.store.put(index, pts[keep], inten[keep], ids[keep])
@@ -470,7 +470,7 @@ class StaticMapBuilder:
         pts = np.asarray(points_sensor, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"points must be (N,3); got {pts.shape}")
-        keep = np.isfinite(pts).all(axis=1)
+        keep = geometry.finite_rows(pts)
         if static_mask is not None:
             mask = np.asarray(static_mask, dtype=bool).reshape(-1)
             if mask.shape[0] != len(pts):

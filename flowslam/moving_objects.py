@@ -112,7 +112,7 @@ def moving_objects(
     if static_mask is not None:
         sel &= ~np.asarray(static_mask, dtype=bool).reshape(-1)
     flow = np.asarray(flow, dtype=np.float64)
-    sel &= np.isfinite(flow).all(axis=1)
+    sel &= geometry.finite_rows(flow)
     if not np.any(sel):
         return []
     p = np.asarray(points, dtype=np.float64)[sel]

@@ -67,6 +67,29 @@ def test_real_extract_frames_and_points(kitti: KittiOdometry, kitti_extract: Pat
     np.testing.assert_array_equal(exact[3].points, raw[:, :3].astype(np.float64))
 
 
+def test_elevation_correction_equals_the_numpy_form(kitti_extract: Path):
+    """The compiled correction gives the NumPy form's numbers bit for bit (a real scan, a
+    point on the z axis, NaN rows), keeps each point's range and azimuth and raises its
+    elevation by the angle."""
+    from flowslam.datasets.kitti import correct_elevation
+
+    raw = np.fromfile(kitti_extract / "sequences/00/velodyne/000003.bin", dtype=np.float32).reshape(-1, 4)
+    pts = np.vstack([raw[:, :3].astype(np.float64), [[0.0, 0.0, 2.0], [np.nan, 1.0, 1.0], [1.0, 2.0, np.nan]]])
+    angle = np.deg2rad(0.205)
+    x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
+    rho = np.hypot(x, y)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(rho > 0, (rho * np.cos(angle) - z * np.sin(angle)) / rho, 1.0)
+    expected = np.column_stack([x * ratio, y * ratio, np.where(rho > 0, z * np.cos(angle) + rho * np.sin(angle), z)])
+    got = correct_elevation(pts, angle)
+    np.testing.assert_array_equal(got, expected)
+    real = slice(0, len(raw))
+    np.testing.assert_allclose(np.linalg.norm(got[real], axis=1), np.linalg.norm(pts[real], axis=1), rtol=1e-12)
+    np.testing.assert_allclose(np.arctan2(got[real, 1], got[real, 0]), np.arctan2(pts[real, 1], pts[real, 0]), atol=1e-12)
+    rises = np.arctan2(got[real, 2], np.hypot(got[real, 0], got[real, 1])) - np.arctan2(z[real], rho[real])
+    np.testing.assert_allclose(rises, angle, atol=1e-9)
+
+
 def test_real_extract_times_and_gt(kitti: KittiOdometry, kitti_extract: Path):
     times = np.loadtxt(kitti_extract / "sequences/00/times.txt")
     np.testing.assert_array_equal(kitti.timestamps, times)

@@ -71,3 +71,11 @@ def test_row_norms_equal_numpy_bit_for_bit():
     for shape, scale in [((10_000, 3), 40.0), ((5_000, 2), 1e-3), ((7, 3), 1e6), ((0, 3), 1.0)]:
         v = rng.normal(0.0, scale, shape)
         np.testing.assert_array_equal(g.row_norms(v), np.linalg.norm(v, axis=1))
+
+
+def test_finite_rows_equal_numpy():
+    v = np.random.default_rng(4).normal(0.0, 1.0, (1000, 3))
+    v[[3, 10, 500], [0, 2, 1]] = [np.nan, np.inf, -np.inf]
+    v[7] = 1e308  # finite, though its sum overflows
+    np.testing.assert_array_equal(g.finite_rows(v), np.isfinite(v).all(axis=1))
+    assert g.finite_rows(np.zeros((0, 3))).shape == (0,)
