@@ -641,14 +641,11 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
     # only components of at most grow_max_extent_m can join, so only points that close to a
     # mover's points (in x and y) can belong to one: the others are not clustered at all
     reach = c.grow_max_extent_m + c.cluster_cell_m
-    by_x = solid[np.argsort(source[solid, 0], kind="stable")]
-    x = source[by_x, 0]
-    near = []
+    xy = source[solid, :2]
+    near = np.zeros(len(solid), dtype=bool)
     for _, _, core in grown:
-        lo, hi = source[core, :2].min(axis=0) - reach, source[core, :2].max(axis=0) + reach
-        band = by_x[np.searchsorted(x, lo[0]):np.searchsorted(x, hi[0], side="right")]
-        near.append(band[in_bounds(source[band, :2], lo, hi)])
-    solid = np.unique(np.concatenate(near))  # sorted, as ``solid`` was
+        near |= in_bounds(xy, source[core, :2].min(axis=0) - reach, source[core, :2].max(axis=0) + reach)
+    solid = solid[near]  # still sorted
     if solid.size == 0:
         return
     labels = bev_clusters(source[solid], c.cluster_cell_m)
