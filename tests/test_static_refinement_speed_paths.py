@@ -8,7 +8,7 @@ import pytest
 
 from flowslam.config import FlowRefinementConfig
 from flowslam.datasets import open_dataset
-from flowslam.sceneflow.refinement.static import _covariances, _planar_points, _voxel_centroids
+from flowslam.sceneflow.refinement.static import _covariances, _planar_points, _target_centroids, _voxel_centroids
 from flowslam.sceneflow.refinement.symmetric3 import smallest_eigenvectors, symmetric_eigenvalues
 
 
@@ -73,6 +73,20 @@ def test_planar_points_match_the_eigh_selection(kitti_target):
     np.testing.assert_array_equal(planar, kitti_target[ref])
     well_posed = (ref_values[ref, 1] - ref_values[ref, 0]) / ref_values[ref].sum(axis=1) > 1e-3
     assert _angle_deg(normals, ref_vectors[ref, :, 0])[well_posed].max() < 1e-4
+
+
+def test_target_centroids_are_open3ds(kitti_extract):
+    """The target scan's compiled downsampling gives Open3D's centroids bit for bit, in
+    voxel-key order (x, then y, then z) instead of Open3D's hash order."""
+    scan = open_dataset(kitti_extract)[5].points
+    c = FlowRefinementConfig()
+    got = _target_centroids(scan, c.voxel_m, c.max_range_m)
+    open3d = _voxel_centroids(scan, c.voxel_m, c.max_range_m)
+    assert len(got) == len(open3d) > 10_000
+    by_rows = lambda a: a[np.lexsort(a.T[::-1])]  # noqa: E731 -- rows sorted by x, then y, then z
+    np.testing.assert_array_equal(by_rows(got), by_rows(open3d))
+    keys = np.floor((got - got.min(axis=0) + c.voxel_m / 2) / c.voxel_m)
+    assert np.all(np.diff(keys[:, 0]) >= 0)  # key order: x first
 
 
 @pytest.mark.parametrize("far", [False, True])

@@ -86,6 +86,18 @@ def _voxel_centroids(points: np.ndarray, voxel: float, max_range: float, subset:
     return np.asarray(cloud.voxel_down_sample(voxel).points)
 
 
+def _target_centroids(points: np.ndarray, voxel: float, max_range: float) -> np.ndarray:
+    """:func:`_voxel_centroids` of the target scan (no subset), compiled: the same voxels and
+    centroids as Open3D's ``voxel_down_sample``, in voxel-key order
+    (:func:`flowslam.compiled_voxels.open3d_voxel_means`). The target's order only decides
+    between equally near points; the source keeps Open3D's order, on which its random
+    subset depends."""
+    from flowslam.compiled_voxels import open3d_voxel_means
+
+    p = np.asarray(points, dtype=np.float64)
+    return open3d_voxel_means(p, voxel, np.einsum("ij,ij->i", p, p) < max_range * max_range)[0]
+
+
 def _near_any(points: np.ndarray, others: np.ndarray, radius: float) -> np.ndarray:
     """(N,) bool: ``points`` (N,3) with one of ``others`` (M,3, same frame) closer than ``radius`` (m)."""
     from scipy.spatial import cKDTree
@@ -216,7 +228,7 @@ def refine_static_flow(
     if len(src_points) > c.max_source_points:
         keep = np.random.default_rng(0).choice(len(src_points), c.max_source_points, replace=False)
         src_points = src_points[np.sort(keep)]
-    tgt_points = _voxel_centroids(target, c.voxel_m, c.max_range_m)
+    tgt_points = _target_centroids(target, c.voxel_m, c.max_range_m)
     n_excluded = 0
     if c.dynamic_exclusion_m > 0 and not static_mask.all():
         landing = source[~static_mask] + flow[~static_mask]
