@@ -198,7 +198,7 @@ class FlowToPose:
         if np.isfinite(points).all() and np.isfinite(flow).all():  # fast path: no per-row pass
             usable = np.ones(n, dtype=bool)
         else:
-            usable = np.isfinite(points).all(axis=1) & np.isfinite(flow).all(axis=1)
+            usable = geometry.finite_rows(points) & geometry.finite_rows(flow)
         if static_mask is not None:
             static_mask = np.asarray(static_mask, dtype=bool).reshape(-1)
             if static_mask.shape[0] != n:

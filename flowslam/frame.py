@@ -32,6 +32,7 @@ from typing import Iterator
 
 import numpy as np
 
+from flowslam import geometry
 from flowslam.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -107,7 +108,7 @@ def sanitize_frame(
     n_nonfinite = n_far = 0
     # fast path: one reduction for clean scans (NaN makes the comparison False)
     if len(pts) and not np.abs(pts).max() <= max_coordinate_m:
-        finite = np.isfinite(pts).all(axis=1)
+        finite = geometry.finite_rows(pts)
         with np.errstate(invalid="ignore"):
             near = (np.abs(pts) <= max_coordinate_m).all(axis=1)
         n_nonfinite = int(len(pts) - finite.sum())

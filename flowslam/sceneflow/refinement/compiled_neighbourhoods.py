@@ -156,21 +156,12 @@ def _cubes(points, rows, lo, cell):
 
 
 @njit(cache=True, nogil=True)
-def _near_any(points, x, radius):
+def _near_any(points, x, radius, x_lo, x_hi):
+    """:func:`near_any_points` (``x_lo``, ``x_hi``: the queries' minimum and maximum per column)."""
     n = x.shape[0]
     hit = np.zeros(n, np.bool_)
-    lo = np.empty(3)
-    hi = np.empty(3)
-    for d in range(3):
-        lo[d] = x[0, d]
-        hi[d] = x[0, d]
-    for i in range(n):
-        for d in range(3):
-            lo[d] = min(lo[d], x[i, d])
-            hi[d] = max(hi[d], x[i, d])
-    for d in range(3):  # a margin of a cell: every query's 27 cells lie inside [lo, hi + ...]
-        lo[d] -= 2 * radius
-        hi[d] += 2 * radius
+    lo = x_lo - 2 * radius  # a margin of a cell: every query's 27 cells lie inside [lo, hi]
+    hi = x_hi + 2 * radius
     # the scan points that can be near a query, bucketed by cube of edge ``radius``
     inside = np.empty(points.shape[0], np.int64)
     m = 0
@@ -207,30 +198,33 @@ MAX_CELLS_PER_AXIS = (1 << 21) - 8
 
 
 @njit(cache=True, nogil=True)
-def _span(x):
-    """(all finite, max - min per column) of (N,3) ``x`` (N >= 1), in one pass (the span
-    undefined when not all finite)."""
+def _bounds(x):
+    """(all finite, minimum per column (3,), maximum per column (3,)) of (N,3) ``x`` (N >= 1),
+    in one pass (the extremes undefined when not all finite)."""
     lo = x[0].copy()
     hi = x[0].copy()
     for i in range(x.shape[0]):
         for d in range(3):
             v = x[i, d]
             if not np.isfinite(v):
-                return False, hi - lo
+                return False, lo, hi
             if v < lo[d]:
                 lo[d] = v
             elif v > hi[d]:
                 hi[d] = v
-    return True, hi - lo
+    return True, lo, hi
 
 
-def _fits_cubes(x: np.ndarray, radius: float) -> bool:
-    """Whether (N,3) ``x`` (N >= 1) is finite and spans at most ``MAX_CELLS_PER_AXIS`` cubes of
-    edge ``radius`` (> 0) on every axis (with margins)."""
+def _cube_bounds(x: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """(minimum, maximum) per column of (N,3) ``x`` (N >= 1) when it is finite and spans at
+    most ``MAX_CELLS_PER_AXIS`` cubes of edge ``radius`` (> 0) on every axis (with margins);
+    else None."""
     if not radius > 0:
-        return False
-    finite, span = _span(x)
-    return bool(finite) and not np.any(span / radius + 4 > MAX_CELLS_PER_AXIS)
+        return None
+    finite, lo, hi = _bounds(x)
+    if not finite or np.any((hi - lo) / radius + 4 > MAX_CELLS_PER_AXIS):
+        return None
+    return lo, hi
 
 
 def near_any_points(points: np.ndarray, x: np.ndarray, radius: float) -> np.ndarray | None:
@@ -243,21 +237,17 @@ def near_any_points(points: np.ndarray, x: np.ndarray, radius: float) -> np.ndar
     x = np.ascontiguousarray(x, dtype=np.float64)
     if len(x) == 0 or len(points) == 0:
         return np.zeros(len(x), dtype=bool)
-    if not _fits_cubes(x, radius):
+    bounds = _cube_bounds(x, radius)
+    if bounds is None:
         return None  # (non-finite queries: the caller's KD-tree refuses them, as before)
-    return _near_any(np.ascontiguousarray(points, dtype=np.float64), x, float(radius))
+    return _near_any(np.ascontiguousarray(points, dtype=np.float64), x, float(radius), *bounds)
 
 
 
 @njit(cache=True, nogil=True)
-def _knn_within(points, idx, radius, k):
+def _knn_within(points, idx, radius, k, lo):
+    """:func:`knn_within` (``lo``: the points' minimum per column)."""
     n_points = points.shape[0]
-    lo = np.empty(3)
-    for d in range(3):
-        lo[d] = points[0, d]
-    for j in range(n_points):
-        for d in range(3):
-            lo[d] = min(lo[d], points[j, d])
     # the points bucketed by cube of edge ``radius``
     slot_keys, slot_cell, shift, cube_keys, start, members, cell_of = _cubes(points, np.arange(n_points), lo, radius)
     cells = cube_keys.shape[0]
@@ -326,6 +316,7 @@ def knn_within(points: np.ndarray, idx: np.ndarray, radius: float, k: int) -> tu
     idx = np.ascontiguousarray(idx, dtype=np.int64)
     if len(idx) == 0 or k == 0:
         return np.zeros((len(idx), k), np.int64), np.zeros((len(idx), k))
-    if not _fits_cubes(points, radius):
+    bounds = _cube_bounds(points, radius)
+    if bounds is None:
         return None
-    return _knn_within(points, idx, float(radius), k)
+    return _knn_within(points, idx, float(radius), k, bounds[0])
