@@ -9,12 +9,14 @@
 #   TRAIN_DATA=DIR (simulated training sequences, e.g. written by tools/compact_sim.py; VAL names
 #     the held-out one)   TRAIN_MIN=2 (per preset)   EPOCHS="tiny:20 full:20"
 #   TRAIN_CONFIG='{"num_workers": 8, "val_samples": 12}' (flowslam train --config JSON)
+#   BATCH=4  LR=0.003 (flowslam train --batch-size / --lr)
+#   BENCH_ARGS="--grid-half-extent 38.4" (more options of tools/bench_network_device.py)
 #   GAIN_SEQ=DIR (a simulated sequence for tools/bench_adapt.py gain: shipped weights against the
 #     ones trained here, on GAIN_DEVICE=cuda)
 #   OUT=DIR (logs, bench JSON, histories, weights)
 #   tools/gpu_check.sh
 R=$(pwd); PY=${PY:-python3}; TRAIN_MIN=${TRAIN_MIN:-2}; WHEELS=${WHEELS:-.whl}
-STEPS=${STEPS:-tests bench train gain}; EPOCHS=${EPOCHS:-tiny:20 full:20}
+STEPS=${STEPS:-tests bench train gain}; EPOCHS=${EPOCHS:-tiny:20 full:20}; BATCH=${BATCH:-4}; LR=${LR:-0.003}
 TRAIN_CONFIG=${TRAIN_CONFIG:-'{"num_workers": 8, "val_samples": 12}'}
 step() { [[ " $STEPS " == *" $1 "* ]]; }
 export PYTHONUNBUFFERED=1
@@ -31,7 +33,7 @@ cd /tmp  # not the checkout: its flowslam/ folder lacks the plug-in packages
 step tests && { echo "=== tests"; date; timeout 300 $PY -m pytest -q -p no:cacheprovider -rs "$R"/tests/test_sceneflow_model.py \
   "$R"/tests/test_network_speed_paths.py "$R"/tests/test_sceneflow_scan.py 2>&1 | tail -15; }
 step bench && { echo "=== network stage per device"; date
-timeout 300 $PY "$R"/tools/bench_network_device.py --frames 6 --runs 5 --json "$OUT"/bench_network_device.json; }
+timeout 300 $PY "$R"/tools/bench_network_device.py --frames 6 --runs 5 ${BENCH_ARGS:-} --json "$OUT"/bench_network_device.json; }
 if step train && [ -n "${TRAIN_DATA:-}" ]; then
   echo "=== training"; date
   echo "$TRAIN_CONFIG" > /tmp/gpu-check-train.json
@@ -40,7 +42,7 @@ if step train && [ -n "${TRAIN_DATA:-}" ]; then
     preset=${pe%%:*}
     timeout $(awk "BEGIN {print int($TRAIN_MIN * 60 + 90)}") $PY -m flowslam train "${seqs[@]}" --val "$VAL" \
       --out-dir /tmp/tr_$preset --config /tmp/gpu-check-train.json --preset $preset --frames 5 --max-points 8192 \
-      --epochs "${pe##*:}" --batch-size 4 --lr 0.003 --max-minutes "$TRAIN_MIN" --seed 0 --export "$OUT"/$preset.pt \
+      --epochs "${pe##*:}" --batch-size "$BATCH" --lr "$LR" --max-minutes "$TRAIN_MIN" --seed 0 --export "$OUT"/$preset.pt \
       --no-progress > /tmp/train_$preset.log 2>&1
     tail -8 /tmp/train_$preset.log; pkill -f "flowslam train" || true  # loader workers a timeout left
     cp /tmp/tr_$preset/history.json "$OUT"/history_$preset.json || echo "no history for $preset"
