@@ -97,8 +97,9 @@ def _shipped_folded():
 
 @pytest.mark.skipif(not backbone._FUSED_OPS, reason="this torch build has no oneDNN fused conv/linear ops")
 def test_fused_backbone_equals_unfused(monkeypatch, one_torch_thread):
-    """Fused conv/linear + activation kernels against the plain layers, shipped weights, a
-    sparse pillar grid like a real scan's (8 % of the cells occupied)."""
+    """Fused conv/linear + activation kernels (and the STDCBs' compiled passes) against the
+    plain layers, shipped weights, a sparse pillar grid like a real scan's (8 % of the cells
+    occupied)."""
     model = _shipped_folded()
     g = torch.Generator().manual_seed(2)
     dense = torch.rand(1, 5, 256, 256, 16, generator=g) * (torch.rand(1, 5, 256, 256, 1, generator=g) < 0.08)
@@ -109,6 +110,28 @@ def test_fused_backbone_equals_unfused(monkeypatch, one_torch_thread):
         assert not backbone.fusable(dense)
         plain = model.backbone(model.stem(dense))
     torch.testing.assert_close(fused, plain, atol=1e-4, rtol=1e-5)
+
+
+@pytest.mark.skipif(not backbone._FUSED_OPS, reason="this torch build has no oneDNN fused conv/linear ops")
+def test_compiled_blocks_equal_the_torch_blocks(monkeypatch, one_torch_thread):
+    """The separable STDCBs' compiled passes (temporal branches, pooling, gate) against the
+    same blocks in torch kernels only: every level of the shipped U-Net (identity and
+    projected shortcuts), a sparse pillar grid like a real scan's."""
+    model = _shipped_folded()
+    g = torch.Generator().manual_seed(3)
+    dense = torch.rand(1, 5, 256, 256, 16, generator=g) * (torch.rand(1, 5, 256, 256, 1, generator=g) < 0.08)
+    calls = []
+    from flowslam.sceneflow.network import compiled_stdcb
+
+    real = compiled_stdcb.gated
+    monkeypatch.setattr(compiled_stdcb, "gated", lambda *a: calls.append(1) or real(*a))
+    with torch.inference_mode():
+        compiled = model.backbone(model.stem(dense))
+        assert len(calls) == sum(isinstance(m, backbone.STDCB) for m in model.modules())
+        monkeypatch.setattr(backbone, "COMPILED_BLOCKS", False)
+        torch_only = model.backbone(model.stem(dense))
+    assert len(calls) == sum(isinstance(m, backbone.STDCB) for m in model.modules())
+    torch.testing.assert_close(compiled, torch_only, atol=2e-5, rtol=1e-5)
 
 
 def test_fused_path_needs_inference_float32_cpu():

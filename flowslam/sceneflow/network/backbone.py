@@ -29,7 +29,10 @@ autograd, each convolution / linear layer runs together with the activation afte
 (``torch.ops.mkldnn._convolution_pointwise`` / ``_linear_pointwise``, the kernels
 ``torch.compile`` uses on CPU): one pass over the activations instead of two, same
 arithmetic (LeakyReLU and the add bit-identical, the sigmoid to 1e-7). Elsewhere, or
-where this torch build lacks the ops, the plain layers run.
+where this torch build lacks the ops, the plain layers run. In a separable STDCB the
+steps between the expansion / 3x3 convolution and the projection (temporal branches,
+pooling, branch weighting, gate) run as two compiled passes instead
+(``COMPILED_BLOCKS``, :mod:`compiled_stdcb`): the same numbers to float32 rounding.
 
 U-Net: ``levels`` resolutions (stride 1, 2, 4, ...), encoder level i runs
 ``encoder_depths[i]`` STDCBs then a 2x2 stride-2 convolution down (per timestep, time
@@ -67,6 +70,9 @@ def _has_fused_ops() -> bool:
 
 
 _FUSED_OPS = _has_fused_ops()
+COMPILED_BLOCKS = True
+"""Fused inference of a separable STDCB runs its temporal branches, pooling and gate as two
+compiled passes (:mod:`flowslam.sceneflow.network.compiled_stdcb`); False: torch kernels only."""
 
 
 def fusable(x: Tensor) -> bool:
@@ -285,6 +291,13 @@ class STDCB(nn.Module):
         fuse = fusable(x) and self.norm_s.folded  # layer + activation as one kernel (folded, CPU inference)
         h = self.norm_e.after(lambda post: linear(x, self.expand, post), fuse) if self.separable else x
         s = self.norm_s.after(lambda post: spatial_conv(h, self.spatial, post), fuse)
+        if fuse and self.separable and COMPILED_BLOCKS and h.is_contiguous() and s.is_contiguous():
+            from flowslam.sceneflow.network.compiled_stdcb import gated, temporal_branches
+
+            loc, cross, desc = temporal_branches(self, h, s)
+            w = torch.softmax(self.sfs(desc).view(B, 3, self.mid), 1)
+            out = linear_add(gated(self, s, loc, cross, w), self.proj, self.shortcut(x))
+            return F.leaky_relu(out, 0.1, inplace=True)
         loc = self.norm_l.after(lambda post: self.local_t(h, post), fuse)
         cross = self.norm_c.after(lambda post: self.cross_t(h, post), fuse)
         # Soft Feature Selection: per-sample, per-channel softmax over the three branches
