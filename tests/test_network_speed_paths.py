@@ -134,6 +134,37 @@ def test_compiled_blocks_equal_the_torch_blocks(monkeypatch, one_torch_thread):
     torch.testing.assert_close(compiled, torch_only, atol=2e-5, rtol=1e-5)
 
 
+def test_compiled_pillars_equal_the_torch_pillars(kitti_extract, monkeypatch, one_torch_thread):
+    """The pillar PointNet, pooling and stem on the occupied pillars only against the dense
+    torch form: the stem output, the point features and inputs, and the pooled feature of
+    every grid cell (occupied or not), on five real 64-beam scans; then the whole model."""
+    from flowslam.datasets import open_dataset
+    from flowslam.sceneflow.network import model as model_module
+    from flowslam.sceneflow.network.compiled_pillars import pillars_and_stem
+    from flowslam.sceneflow.network.voxelize import index_points
+
+    model = _shipped_folded()
+    ds = open_dataset(kitti_extract)
+    frames = [torch.from_numpy(ds[i].points[::4].astype(np.float32)) for i in range(5)]
+    with torch.inference_mode():
+        index, _ = index_points([frames], model.grid)
+        dense, feats, raw = model.pillars(index)
+        compiled = pillars_and_stem(model.pillars, model.stem, index)
+        torch.testing.assert_close(compiled.stem, model.stem(dense), atol=1e-4, rtol=1e-5)
+        torch.testing.assert_close(compiled.point_feats, feats, atol=1e-4, rtol=1e-5)
+        torch.testing.assert_close(compiled.raw, raw, atol=1e-4, rtol=1e-5)  # voxel units: 40 um
+        grid = dense.reshape(-1, dense.shape[-1])
+        torch.testing.assert_close(compiled.table[compiled.row_of], grid, atol=1e-4, rtol=1e-5)
+        assert int((compiled.row_of >= 0).sum()) == len(torch.unique(index.cell))
+        assert model._compiled_pillars(model.pillars.linear.weight)
+        out = model([frames])
+        monkeypatch.setattr(model_module, "COMPILED_PILLARS", False)
+        assert not model._compiled_pillars(model.pillars.linear.weight)
+        reference = model([frames])
+    torch.testing.assert_close(out["flow"], reference["flow"], atol=1e-4, rtol=0)
+    torch.testing.assert_close(out["dynamic_logit"], reference["dynamic_logit"], atol=1e-4, rtol=0)
+
+
 def test_fused_path_needs_inference_float32_cpu():
     x = torch.zeros(1, 5, 8, 8, 4)
     assert not backbone.fusable(x.double())

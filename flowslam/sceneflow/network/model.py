@@ -55,6 +55,10 @@ from flowslam.sceneflow.network.backbone import STUNet, _Down
 from flowslam.sceneflow.network.flowssm import FlowSSMDecoder, bilinear_gather, morton_code
 from flowslam.sceneflow.network.voxelize import BEVGrid, PillarEncoder, index_points
 
+COMPILED_PILLARS = True
+"""CPU float32 inference runs the pillar PointNet, its pooling and the stride-2 stem on the
+occupied pillars only (:mod:`flowslam.sceneflow.network.compiled_pillars`); False: torch."""
+
 __all__ = [
     "ModelConfig", "SceneFlowNet", "full_flow", "tune_cpu_allocator", "release_free_heap", "default_cpu_threads", "OUTSIDE_LOGIT",
     "PRESETS",
@@ -237,11 +241,19 @@ class SceneFlowNet(nn.Module):
         w = self.pillars.linear.weight
         frames = [[p.to(device=w.device, dtype=w.dtype) for p in sample] for sample in frames]
         index, inside = index_points(frames, self.grid)
-        dense, point_feats, raw = self.pillars(index)  # (B, T, H, W, Cp), (P, Cp), (P, 9)
-        feats = self.backbone(self.stem(dense))  # (B, T, h, w, C0)
+        if self._compiled_pillars(w):  # CPU inference: the occupied pillars only
+            from flowslam.sceneflow.network.compiled_pillars import pillars_and_stem
+
+            pillars = pillars_and_stem(self.pillars, self.stem, index)
+            point_feats, raw, table, row_of = pillars.point_feats, pillars.raw, pillars.table, pillars.row_of
+            feats = self.backbone(pillars.stem)  # (B, T, h, w, C0)
+        else:
+            dense, point_feats, raw = self.pillars(index)  # (B, T, H, W, Cp), (P, Cp), (P, 9)
+            table, row_of = dense.reshape(-1, dense.shape[-1]), None
+            feats = self.backbone(self.stem(dense))  # (B, T, h, w, C0)
         src = T - 2
         sel = torch.nonzero(index.time == src).squeeze(1)  # in-grid points of the source frame
-        point_in, offset_in, code = self._source_inputs(index, sel, dense, feats, point_feats, raw)
+        point_in, offset_in, code = self._source_inputs(index, sel, table, row_of, feats, point_feats, raw)
         out = self.decoder(point_in, offset_in, index.batch[sel], code, index.batch_size)  # (P_src, 4)
 
         # back to one row per input source point, samples concatenated
@@ -255,13 +267,25 @@ class SceneFlowNet(nn.Module):
         batch_index = torch.repeat_interleave(torch.arange(len(frames), device=w.device), counts)
         return {"flow": flow, "dynamic_logit": logit, "batch_index": batch_index, "valid": valid}
 
+    def _compiled_pillars(self, weight: Tensor) -> bool:
+        """Whether the pillar stage and the stem run compiled (:mod:`compiled_pillars`):
+        float32 CPU inference with folded BatchNorms, ``amax`` pooling and a stride-2 stem."""
+        return (
+            COMPILED_PILLARS and weight.device.type == "cpu" and weight.dtype == torch.float32
+            and not torch.is_grad_enabled() and self.pillars.folded and self.pillars.pooling == "amax"
+            and isinstance(self.stem, _Down) and self.stem.norm.folded
+        )
+
     def _source_inputs(
-        self, index, sel: Tensor, dense: Tensor, feats: Tensor, point_feats: Tensor, raw: Tensor
+        self, index, sel: Tensor, table: Tensor, row_of: Tensor | None, feats: Tensor, point_feats: Tensor,
+        raw: Tensor,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Per source point: voxel-to-point inputs, raw offset inputs and Z-order code.
 
         The time axis is collapsed here: only frames t (source) and t+1 (target) of the
-        U-Net output and of the pillar grid are read, at the point's position.
+        U-Net output and of the pillar grid are read, at the point's position. The pooled
+        pillar feature of grid cell ``c`` is ``table[row_of[c]]`` (``row_of`` None: ``table[c]``,
+        the dense grid's rows).
         """
         cfg, g = self.config, self.grid
         B, T, n = index.batch_size, index.num_frames, g.size
@@ -271,13 +295,15 @@ class SceneFlowNet(nn.Module):
         u = (pts[:, 0] + g.extent) / cell - 0.5  # continuous U-Net cell coordinates (centres at integers)
         v = (pts[:, 1] + g.extent) / cell - 0.5
         unet = feats.reshape(B * T, feats.shape[2], feats.shape[3], feats.shape[4])
-        pillars = dense.reshape(-1, dense.shape[-1])
+        at_src, at_tgt = ((b * T + src) * n + iy) * n + ix, ((b * T + tgt) * n + iy) * n + ix
+        if row_of is not None:
+            at_src, at_tgt = row_of[at_src], row_of[at_tgt]
         point_in = torch.cat(
             [
                 bilinear_gather(unet, b * T + src, u, v),  # U-Net features at t and t+1
                 bilinear_gather(unet, b * T + tgt, u, v),
-                pillars[((b * T + src) * n + iy) * n + ix],  # the point's own pillar at t and t+1
-                pillars[((b * T + tgt) * n + iy) * n + ix],
+                table[at_src],  # the point's own pillar at t and t+1
+                table[at_tgt],
                 point_feats[sel],  # its PointNet feature
             ],
             1,
