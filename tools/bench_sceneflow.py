@@ -105,7 +105,9 @@ def bench_model(preset: str, frames: list[np.ndarray], samples: int, runs: int) 
 
 
 def bench_parts(preset: str, frames: list[np.ndarray], samples: int, runs: int) -> dict[str, float]:
-    """Median wall time (ms) of each part of one frame at ``samples`` points per frame."""
+    """Median wall time (ms) of each part of one frame at ``samples`` points per frame (the
+    pillar stage and stem as the model runs them: compiled on the occupied pillars)."""
+    from flowslam.sceneflow.network.compiled_pillars import pillars_and_stem
     from flowslam.sceneflow.network.voxelize import index_points
 
     net = SceneFlowNet(ModelConfig.preset(preset, num_frames=len(frames))).fold_batchnorm()
@@ -116,17 +118,18 @@ def bench_parts(preset: str, frames: list[np.ndarray], samples: int, runs: int) 
     src = len(frames) - 2
     with torch.inference_mode():
         index, _ = index_points(points, net.grid)
-        dense, point_feats, raw = net.pillars(index)
-        feats = net.backbone(net.stem(dense))
+        pillars = pillars_and_stem(net.pillars, net.stem, index)
+        feats = net.backbone(pillars.stem)
         sel = torch.nonzero(index.time == src).squeeze(1)
-        inputs = net._source_inputs(index, sel, dense, feats, point_feats, raw)
+        lookup = (pillars.table, pillars.row_of, feats, pillars.point_feats, pillars.raw)
+        inputs = net._source_inputs(index, sel, *lookup)
         out = net(points)
         values = torch.cat([out["flow"], out["dynamic_logit"].unsqueeze(1)], 1)
         parts = {
             "pillar index": lambda: index_points(points, net.grid),
-            "PointNet + pooling": lambda: net.pillars(index),
-            "stem + U-Net": lambda: net.backbone(net.stem(dense)),
-            "decoder inputs": lambda: net._source_inputs(index, sel, dense, feats, point_feats, raw),
+            "PointNet + pooling + stem": lambda: pillars_and_stem(net.pillars, net.stem, index),
+            "U-Net": lambda: net.backbone(pillars.stem),
+            "decoder inputs": lambda: net._source_inputs(index, sel, *lookup),
             "FlowSSM decoder": lambda: net.decoder(*inputs[:2], index.batch[sel], inputs[2], index.batch_size),
             "propagation": lambda: propagate(full[src], idx[src], values),
         }

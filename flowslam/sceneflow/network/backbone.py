@@ -57,6 +57,7 @@ PostOp = tuple[str, list]
 LEAKY: PostOp = ("leaky_relu", [0.1])
 IDENTITY: PostOp = ("none", [])
 SIGMOID: PostOp = ("sigmoid", [])
+RELU: PostOp = ("relu", [])
 
 
 def _has_fused_ops() -> bool:
@@ -88,6 +89,8 @@ def _post(y: Tensor, post: PostOp | None) -> Tensor:
         return F.leaky_relu_(y, *post[1])
     if post[0] == "sigmoid":
         return torch.sigmoid_(y)
+    if post[0] == "relu":
+        return torch.relu_(y)
     raise ValueError(f"unknown post-op {post[0]!r}")
 
 

@@ -7,7 +7,8 @@ its folded BatchNorm and LeakyReLU, :class:`flowslam.sceneflow.network.backbone.
 The torch form scatters the pooled features into the dense (B, T, 256, 256, C) pillar grid
 (21 MB for the shipped model, ~8 % of it occupied on a 64-beam scan) and convolves all of
 it; here the occupied pillars are numbered in the order their first point comes
-(:func:`_pool`) and each adds its 2x2 tap to the one stem cell it feeds (:func:`_stem`),
+(:func:`_occupied`), the PointNet runs on the points (:func:`_point_inputs`, one oneDNN
+layer with its ReLU) and is max-pooled per pillar (:func:`_max_pool`), and each pillar adds its 2x2 tap to the one stem cell it feeds (:func:`_stem`),
 which starts from the bias that an empty input gives.
 
 The model also reads the pooled feature of a point's own pillar at two timesteps: the
@@ -28,20 +29,19 @@ import torch
 from numba import njit
 from torch import Tensor
 
+from flowslam.sceneflow.network.backbone import RELU, linear
+
 __all__ = ["CompiledPillars", "pillars_and_stem"]
 
 _F = np.float32
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
-def _pool(points, cell, ix, iy, time, num_cells, half_extent, extent, voxel, z_mid, z_half, t_scale, weight, bias,
-          raw, feats):
-    """Fill ``raw`` (P, 9) and ``feats`` (P, C) (the PointNet's inputs and ReLU outputs,
-    ``weight`` (9, C) + ``bias``) of the points (P, 3) in their cells; returns (the pooled
-    (amax) feature of each occupied cell in order of first point, with a zero row last
-    (S + 1, C); the row of each cell, -1 where empty (num_cells,); the cell of each row (S,))."""
+def _occupied(points, cell, num_cells):
+    """Number the occupied cells in the order of their first point: (the row of each point
+    (P,); the row of each cell, -1 where empty (num_cells,); the cell of each row (S,); the
+    x, y, z sums and the point count of each row (S, 4))."""
     P = points.shape[0]
-    C = weight.shape[1]
     row_of = np.full(num_cells, -1, np.int64)
     slot = np.empty(P, np.int64)
     sums = np.zeros((P, 4), np.float32)
@@ -59,35 +59,38 @@ def _pool(points, cell, ix, iy, time, num_cells, half_extent, extent, voxel, z_m
         sums[r, 1] += points[p, 1]
         sums[r, 2] += points[p, 2]
         sums[r, 3] += _F(1.0)
-    pooled = np.zeros((S + 1, C), np.float32)
-    x = np.empty(9, np.float32)
-    for p in range(P):
+    return slot, row_of, cells[:S], sums[:S]
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+def _point_inputs(points, slot, sums, ix, iy, time, half_extent, extent, voxel, z_mid, z_half, t_scale, raw):
+    """``raw`` (P, 9): ``PillarEncoder.point_inputs`` (position over the half extent, height,
+    offsets to the cell centre and to the cell's point mean in voxels, time)."""
+    for p in range(points.shape[0]):
         r = slot[p]
         px, py, pz = points[p, 0], points[p, 1], points[p, 2]
         n = sums[r, 3]
-        x[0] = px / half_extent
-        x[1] = py / half_extent
-        x[2] = (pz - z_mid) / z_half
-        x[3] = (px - ((_F(ix[p]) + _F(0.5)) * voxel - extent)) / voxel
-        x[4] = (py - ((_F(iy[p]) + _F(0.5)) * voxel - extent)) / voxel
-        x[5] = (px - sums[r, 0] / n) / voxel
-        x[6] = (py - sums[r, 1] / n) / voxel
-        x[7] = (pz - sums[r, 2] / n) / voxel
-        x[8] = _F(time[p]) / t_scale
-        out, best = feats[p], pooled[r]
+        raw[p, 0] = px / half_extent
+        raw[p, 1] = py / half_extent
+        raw[p, 2] = (pz - z_mid) / z_half
+        raw[p, 3] = (px - ((_F(ix[p]) + _F(0.5)) * voxel - extent)) / voxel
+        raw[p, 4] = (py - ((_F(iy[p]) + _F(0.5)) * voxel - extent)) / voxel
+        raw[p, 5] = (px - sums[r, 0] / n) / voxel
+        raw[p, 6] = (py - sums[r, 1] / n) / voxel
+        raw[p, 7] = (pz - sums[r, 2] / n) / voxel
+        raw[p, 8] = _F(time[p]) / t_scale
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+def _max_pool(feats, slot, rows):
+    """(rows + 1, C): the largest of ``feats`` (P, C, >= 0) per row, a zero row last."""
+    C = feats.shape[1]
+    pooled = np.zeros((rows + 1, C), np.float32)
+    for p in range(feats.shape[0]):
+        best, f = pooled[slot[p]], feats[p]
         for k in range(C):
-            out[k] = bias[k]
-        for i in range(9):
-            raw[p, i] = x[i]
-            xi = x[i]
-            w = weight[i]
-            for k in range(C):
-                out[k] += xi * w[k]
-        for k in range(C):
-            v = max(out[k], _F(0.0))
-            out[k] = v
-            best[k] = max(best[k], v)
-    return pooled, row_of, cells[:S]
+            best[k] = max(best[k], f[k])
+    return pooled
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
@@ -143,23 +146,20 @@ def pillars_and_stem(encoder, stem, index) -> CompiledPillars:
     ``stem`` (``_Down``) on the points of ``index`` (a ``PillarIndex``)."""
     g = encoder.grid
     B, T, n = index.batch_size, index.num_frames, g.size
-    C = encoder.channels
     points = np.ascontiguousarray(index.points.to(torch.float32).numpy())
-    P = len(points)
-    raw = np.empty((P, 9), np.float32)
-    feats = np.empty((P, C), np.float32)
-    lin = encoder.linear
+    slot, row_of, cells, sums = _occupied(points, index.cell.numpy(), B * T * n * n)
+    raw = np.empty((len(points), 9), np.float32)
     z_mid, z_half = 0.5 * (g.z_max + g.z_min), 0.5 * (g.z_max - g.z_min)
-    pooled, row_of, cells = _pool(
-        points, index.cell.numpy(), index.ix.numpy(), index.iy.numpy(), index.time.numpy(), B * T * n * n,
-        _F(g.half_extent), _F(g.extent), _F(g.voxel_size), _F(z_mid), _F(z_half), _F(max(T - 1, 1)),
-        np.ascontiguousarray(lin.weight.detach().numpy().T), lin.bias.detach().numpy().astype(np.float32), raw, feats,
-    )
+    _point_inputs(points, slot, sums, index.ix.numpy(), index.iy.numpy(), index.time.numpy(), _F(g.half_extent),
+                  _F(g.extent), _F(g.voxel_size), _F(z_mid), _F(z_half), _F(max(T - 1, 1)), raw)
+    raw_t = torch.from_numpy(raw)
+    feats = linear(raw_t, encoder.linear, RELU)  # the PointNet layer and its ReLU (oneDNN)
+    pooled = _max_pool(feats.numpy(), slot, len(cells))
     conv = stem.conv
     Co = conv.out_channels
     out = np.empty((B * T, n // 2, n // 2, Co), np.float32)
     # (Co, C, 2, 2) -> (2, 2, C, Co): per tap, one (C, Co) matrix
     w = np.ascontiguousarray(conv.weight.detach().numpy().transpose(2, 3, 1, 0))
     _stem(pooled, cells, n, w, conv.bias.detach().numpy().astype(np.float32), _F(0.1), out)
-    return CompiledPillars(torch.from_numpy(out).view(B, T, n // 2, n // 2, Co), torch.from_numpy(feats),
-                           torch.from_numpy(raw), torch.from_numpy(pooled), torch.from_numpy(row_of))
+    return CompiledPillars(torch.from_numpy(out).view(B, T, n // 2, n // 2, Co), feats, raw_t,
+                           torch.from_numpy(pooled), torch.from_numpy(row_of))
