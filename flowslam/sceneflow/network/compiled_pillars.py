@@ -7,9 +7,10 @@ its folded BatchNorm and LeakyReLU, :class:`flowslam.sceneflow.network.backbone.
 The torch form scatters the pooled features into the dense (B, T, 256, 256, C) pillar grid
 (21 MB for the shipped model, ~8 % of it occupied on a 64-beam scan) and convolves all of
 it; here the occupied pillars are numbered in the order their first point comes
-(:func:`_occupied`), the PointNet runs on the points (:func:`_point_inputs`, one oneDNN
-layer with its ReLU) and is max-pooled per pillar (:func:`_max_pool`), and each pillar adds its 2x2 tap to the one stem cell it feeds (:func:`_stem`),
-which starts from the bias that an empty input gives.
+(:func:`_occupied`), the PointNet runs on the points (:func:`_point_inputs`, then one
+oneDNN layer with its ReLU) and is max-pooled per pillar (:func:`_max_pool`), and each
+pillar adds its 2x2 tap to the one stem cell it feeds (:func:`_stem`), which starts from
+the bias that an empty input gives.
 
 The model also reads the pooled feature of a point's own pillar at two timesteps: the
 result carries a table of the pooled rows with a zero row last, and the row of every grid
