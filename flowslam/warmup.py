@@ -4,8 +4,9 @@
 sequence in a temporary folder (5 scans of the embedded simulator's ``dt`` town, VLP-16)
 and runs the default ``ssf`` + ``isam2`` pipeline on it, with the static map and the
 moving-objects log, then the KITTI reader's elevation correction: every compiled kernel
-of a run is compiled for the types a run gives it and written to numba's cache (``__pycache__`` beside the sources, or numba's
-user cache where that is read-only), which later processes load in milliseconds.
+of a run is compiled for the types a run gives it and written to numba's cache
+(``__pycache__`` beside the sources, or numba's user cache where that is read-only),
+which later processes load in milliseconds.
 Measured on the 2-core VM: ``flowslam run -f ssf -b isam2`` on the 16 KITTI scans took
 32.8 s with an empty cache and 9.0 s after this warm-up (8.4 s with every kernel cached).
 

@@ -30,7 +30,7 @@ import torch
 from numba import njit
 from torch import Tensor
 
-from flowslam.sceneflow.network.backbone import RELU, linear
+from flowslam.sceneflow.network.backbone import LEAKY, RELU, linear
 
 __all__ = ["CompiledPillars", "pillars_and_stem"]
 
@@ -161,6 +161,6 @@ def pillars_and_stem(encoder, stem, index) -> CompiledPillars:
     out = np.empty((B * T, n // 2, n // 2, Co), np.float32)
     # (Co, C, 2, 2) -> (2, 2, C, Co): per tap, one (C, Co) matrix
     w = np.ascontiguousarray(conv.weight.detach().numpy().transpose(2, 3, 1, 0))
-    _stem(pooled, cells, n, w, conv.bias.detach().numpy().astype(np.float32), _F(0.1), out)
+    _stem(pooled, cells, n, w, conv.bias.detach().numpy().astype(np.float32), _F(LEAKY[1][0]), out)
     return CompiledPillars(torch.from_numpy(out).view(B, T, n // 2, n // 2, Co), feats, raw_t,
                            torch.from_numpy(pooled), torch.from_numpy(row_of))

@@ -30,12 +30,13 @@ import torch
 from numba import njit
 from torch import Tensor
 
+from flowslam.sceneflow.network.backbone import LEAKY
 from flowslam.sceneflow.network.compiled_scan import _exp_into
 
 __all__ = ["temporal_branches", "gated"]
 
 _F = np.float32
-_SLOPE = _F(0.1)  # the blocks' LeakyReLU slope (backbone.LEAKY)
+_SLOPE = _F(LEAKY[1][0])  # the blocks' LeakyReLU slope
 _ONE = _F(1.0)
 _EXP_LO, _EXP_HI = _F(-87.0), _F(88.0)
 
