@@ -134,6 +134,23 @@ def test_compiled_blocks_equal_the_torch_blocks(monkeypatch, one_torch_thread):
     torch.testing.assert_close(compiled, torch_only, atol=2e-5, rtol=1e-5)
 
 
+def test_tiled_weights_are_kept_until_the_parameter_changes():
+    """The compiled blocks tile each frozen weight once per row width; an in-place change
+    of the parameter (a BatchNorm fold, a loaded state) or a new parameter tiles it again."""
+    from flowslam.sceneflow.network.compiled_stdcb import _tiled, _tiled_parameter
+
+    layer = torch.nn.Conv1d(4, 4, 3, groups=4)
+    first = _tiled_parameter(layer, "weight", 6)
+    np.testing.assert_array_equal(first, _tiled(layer.weight, 6))
+    assert _tiled_parameter(layer, "weight", 6) is first  # kept
+    assert _tiled_parameter(layer, "weight", 7).shape[-1] == 7 * first.shape[-1] // 6  # per width
+    with torch.no_grad():
+        layer.weight.mul_(2.0)
+    np.testing.assert_array_equal(_tiled_parameter(layer, "weight", 6), 2.0 * first)
+    layer.weight = torch.nn.Parameter(torch.ones_like(layer.weight))
+    np.testing.assert_array_equal(_tiled_parameter(layer, "weight", 6), np.ones_like(first))
+
+
 def test_compiled_pillars_equal_the_torch_pillars(kitti_extract, monkeypatch, one_torch_thread):
     """The pillar PointNet, pooling and stem on the occupied pillars only against the dense
     torch form: the stem output, the point features and inputs, and the pooled feature of
@@ -163,6 +180,44 @@ def test_compiled_pillars_equal_the_torch_pillars(kitti_extract, monkeypatch, on
         reference = model([frames])
     torch.testing.assert_close(out["flow"], reference["flow"], atol=1e-4, rtol=0)
     torch.testing.assert_close(out["dynamic_logit"], reference["dynamic_logit"], atol=1e-4, rtol=0)
+
+
+def test_compiled_decoder_inputs_equal_the_torch_gathers(kitti_extract, one_torch_thread):
+    """The decoder's per-point inputs gathered in one compiled pass against the torch form
+    (bilinear U-Net gathers, pillar rows, PointNet rows, offsets) on five real 64-beam scans,
+    points at the grid's border included; then the model's Z-order code is the same."""
+    from flowslam.datasets import open_dataset
+    from flowslam.sceneflow.network.compiled_decoder_inputs import decoder_inputs
+    from flowslam.sceneflow.network.compiled_pillars import pillars_and_stem
+    from flowslam.sceneflow.network.voxelize import index_points
+
+    model = _shipped_folded()
+    ds = open_dataset(kitti_extract)
+    frames = [torch.from_numpy(ds[i].points[::4].astype(np.float32)) for i in range(5)]
+    g = model.grid
+    edge = torch.tensor([[-g.extent, -g.extent, 0.0], [g.extent - 1e-3, g.extent - 1e-3, 0.0], [0.0, 0.0, 0.0]])
+    frames[3] = torch.cat([frames[3], edge])  # the source frame: corners and the centre
+    with torch.inference_mode():
+        index, _ = index_points([frames], g)
+        pillars = pillars_and_stem(model.pillars, model.stem, index)
+        dense, _, _ = model.pillars(index)
+        feats = model.backbone(pillars.stem)
+        sel = torch.nonzero(index.time == 3).squeeze(1)
+        _, _, code = model._source_inputs(index, sel, pillars.table, pillars.row_of, feats, pillars.point_feats,
+                                          pillars.raw)
+        cell = model.config.voxel_size * model.config.stem_stride
+        pts = index.points[sel]
+        u, v = (pts[:, 0] + g.extent) / cell - 0.5, (pts[:, 1] + g.extent) / cell - 0.5
+        point_in, offset_in = decoder_inputs(feats, 3, g.size, index.batch[sel], index.ix[sel], index.iy[sel], u, v,
+                                             pillars.table, pillars.row_of, pillars.point_feats, sel, pillars.raw)
+        table = pillars.table[pillars.row_of]  # every grid cell's pooled row, as the dense grid holds them
+        ref_point, ref_offset = model._gathered_inputs(index, sel, table, feats, pillars.point_feats, pillars.raw, u, v)
+        _, _, ref_code = model._source_inputs(index, sel, dense.reshape(-1, dense.shape[-1]), None, feats,
+                                              pillars.point_feats, pillars.raw)
+    assert point_in.shape == ref_point.shape and offset_in.shape == ref_offset.shape
+    torch.testing.assert_close(point_in, ref_point, atol=1e-6, rtol=1e-6)
+    torch.testing.assert_close(offset_in, ref_offset, atol=0, rtol=0)
+    assert torch.equal(code, ref_code)
 
 
 def test_fused_path_needs_inference_float32_cpu():

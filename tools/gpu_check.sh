@@ -9,6 +9,9 @@
 #   TRAIN_DATA=DIR (simulated training sequences, e.g. written by tools/compact_sim.py; VAL names
 #     the held-out one)   TRAIN_MIN=2 (per preset)   EPOCHS="tiny:20 full:20"
 #   TRAIN_CONFIG='{"num_workers": 8, "val_samples": 12}' (flowslam train --config JSON)
+#   EPOCHS entries are NAME:EPOCHS; NAME's part before the first "-" is the preset, and with
+#     RUN_CONFIGS=DIR a NAME that has DIR/NAME.json trains with that config instead of TRAIN_CONFIG
+#     (e.g. "tiny-fine:15" with DIR/tiny-fine.json holding init_weights and model_overrides)
 #   BATCH=4  LR=0.003 (flowslam train --batch-size / --lr)
 #   BENCH_ARGS="--grid-half-extent 38.4" (more options of tools/bench_network_device.py)
 #   GAIN_SEQ=DIR (a simulated sequence for tools/bench_adapt.py gain: shipped weights against the
@@ -39,18 +42,19 @@ if step train && [ -n "${TRAIN_DATA:-}" ]; then
   echo "$TRAIN_CONFIG" > /tmp/gpu-check-train.json
   mapfile -t seqs < <(find "$TRAIN_DATA" -mindepth 1 -maxdepth 1 -type d ! -path "$VAL")
   for pe in $EPOCHS; do
-    preset=${pe%%:*}
+    name=${pe%%:*}; preset=${name%%-*}; config=/tmp/gpu-check-train.json
+    [ -n "${RUN_CONFIGS:-}" ] && [ -f "$RUN_CONFIGS/$name.json" ] && config=$RUN_CONFIGS/$name.json
     timeout $(awk "BEGIN {print int($TRAIN_MIN * 60 + 90)}") $PY -m flowslam train "${seqs[@]}" --val "$VAL" \
-      --out-dir /tmp/tr_$preset --config /tmp/gpu-check-train.json --preset $preset --frames 5 --max-points 8192 \
-      --epochs "${pe##*:}" --batch-size "$BATCH" --lr "$LR" --max-minutes "$TRAIN_MIN" --seed 0 --export "$OUT"/$preset.pt \
-      --no-progress > /tmp/train_$preset.log 2>&1
-    tail -8 /tmp/train_$preset.log; pkill -f "flowslam train" || true  # loader workers a timeout left
-    cp /tmp/tr_$preset/history.json "$OUT"/history_$preset.json || echo "no history for $preset"
+      --out-dir /tmp/tr_$name --config "$config" --preset $preset --frames 5 --max-points 8192 \
+      --epochs "${pe##*:}" --batch-size "$BATCH" --lr "$LR" --max-minutes "$TRAIN_MIN" --seed 0 --export "$OUT"/$name.pt \
+      --no-progress > /tmp/train_$name.log 2>&1
+    echo "--- $name"; tail -8 /tmp/train_$name.log; pkill -f "flowslam train" || true  # loader workers a timeout left
+    cp /tmp/tr_$name/history.json "$OUT"/history_$name.json || echo "no history for $name"
   done
 fi
 if step gain && [ -n "${GAIN_SEQ:-}" ]; then
   echo "=== prior-error gain (tools/bench_adapt.py gain)"; date
-  also=(); for w in "$OUT"/tiny.pt "$OUT"/full.pt; do [ -f "$w" ] && also+=(--also "$w"); done
+  also=(); for w in "$OUT"/*.pt; do [ -f "$w" ] && also+=(--also "$w"); done
   timeout 150 $PY "$R"/tools/bench_adapt.py gain --sequence "$GAIN_SEQ" --device "${GAIN_DEVICE:-cuda}" --points 8192 \
     --out /tmp/gain "${also[@]}" && cp /tmp/gain/gain.json "$OUT"/gain.json
 fi

@@ -132,6 +132,19 @@ def _tiled(w: Tensor, width: int) -> np.ndarray:
     return np.ascontiguousarray(np.tile(a, (1,) * (a.ndim - 1) + (width,)))
 
 
+def _tiled_parameter(module, name: str, width: int) -> np.ndarray:
+    """:func:`_tiled` of the ``module``'s parameter ``name``, kept on the module (a frozen
+    model tiles each weight once per row width) until that parameter changes (its storage
+    or its version counter)."""
+    w = getattr(module, name)
+    cache = module.__dict__.setdefault("_tiled_cache", {})
+    stamp = (w.data_ptr(), w._version)
+    kept = cache.get((name, width))
+    if kept is None or kept[0] != stamp:
+        kept = cache[(name, width)] = (stamp, _tiled(w, width))
+    return kept[1]
+
+
 def temporal_branches(block, h: Tensor, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """(local branch, cross branch, SFS descriptor (B, mid): the mean of the three branches'
     sum over (T, H, W)) of the folded separable ``block`` from its expanded features ``h``
@@ -141,8 +154,9 @@ def temporal_branches(block, h: Tensor, s: Tensor) -> tuple[Tensor, Tensor, Tens
     loc, cross = np.empty_like(rows), np.empty_like(rows)
     sums = np.zeros((B, W * C))
     lt, ct = block.local_t, block.cross_t
-    _temporal_branches(rows, _rows(s), _tiled(lt.weight, W), _tiled(lt.bias, W), _tiled(ct.weight, W),
-                       _tiled(ct.bias, W), ct.dilation, loc, cross, sums)
+    _temporal_branches(rows, _rows(s), _tiled_parameter(lt, "weight", W), _tiled_parameter(lt, "bias", W),
+                       _tiled_parameter(ct, "weight", W), _tiled_parameter(ct, "bias", W), ct.dilation, loc, cross,
+                       sums)
     desc = torch.from_numpy((sums.reshape(B, W, C).sum(1) / (T * H * W)).astype(np.float32))
     return torch.from_numpy(loc).view(h.shape), torch.from_numpy(cross).view(h.shape), desc
 
@@ -152,6 +166,6 @@ def gated(block, s: Tensor, loc: Tensor, cross: Tensor, weights: Tensor) -> Tens
     mid), from the three branches and the SFS weights (B, 3, mid)."""
     B, T, H, W, C = s.shape
     out = np.empty((B, T, H, W * C), np.float32)
-    _gated(_rows(s), _rows(loc), _rows(cross), _tiled(weights, W), _tiled(block.gate.weight, W),
-           _tiled(block.gate.bias, W), out)
+    _gated(_rows(s), _rows(loc), _rows(cross), _tiled(weights, W), _tiled_parameter(block.gate, "weight", W),
+           _tiled_parameter(block.gate, "bias", W), out)
     return torch.from_numpy(out).view(s.shape)

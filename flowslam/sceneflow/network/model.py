@@ -288,22 +288,39 @@ class SceneFlowNet(nn.Module):
         the dense grid's rows).
         """
         cfg, g = self.config, self.grid
-        B, T, n = index.batch_size, index.num_frames, g.size
-        src, tgt = T - 2, T - 1
-        pts, b, ix, iy = index.points[sel], index.batch[sel], index.ix[sel], index.iy[sel]
+        pts = index.points[sel]
         cell = cfg.voxel_size * cfg.stem_stride
         u = (pts[:, 0] + g.extent) / cell - 0.5  # continuous U-Net cell coordinates (centres at integers)
         v = (pts[:, 1] + g.extent) / cell - 0.5
+        if row_of is not None:  # the compiled pillar stage ran: the same inputs in one compiled pass
+            from flowslam.sceneflow.network.compiled_decoder_inputs import decoder_inputs
+
+            point_in, offset_in = decoder_inputs(feats, index.num_frames - 2, g.size, index.batch[sel], index.ix[sel],
+                                                 index.iy[sel], u, v, table, row_of, point_feats, sel, raw)
+        else:
+            point_in, offset_in = self._gathered_inputs(index, sel, table, feats, point_feats, raw, u, v)
+        # Z-order at 1/8 of the pillar size, so that ties (and with them any dependence on
+        # the input order) are rare; from the trained grid's corner, cropped or not
+        origin = pts.new_tensor([-g.half_extent, -g.half_extent, g.z_min])
+        q = torch.floor((pts - origin) / (cfg.voxel_size / MORTON_SUBDIVISION)).long().clamp(min=0)
+        return point_in, offset_in, morton_code(q[:, 0], q[:, 1], q[:, 2])
+
+    @staticmethod
+    def _gathered_inputs(
+        index, sel: Tensor, table: Tensor, feats: Tensor, point_feats: Tensor, raw: Tensor, u: Tensor, v: Tensor,
+    ) -> tuple[Tensor, Tensor]:
+        """The torch form of :meth:`_source_inputs`' voxel-to-point and offset inputs, on the
+        dense pillar grid's rows ``table`` (``u``, ``v``: the points' U-Net cell coordinates)."""
+        B, T, n = index.batch_size, index.num_frames, index.grid.size
+        src, tgt = T - 2, T - 1
+        b, ix, iy = index.batch[sel], index.ix[sel], index.iy[sel]
         unet = feats.reshape(B * T, feats.shape[2], feats.shape[3], feats.shape[4])
-        at_src, at_tgt = ((b * T + src) * n + iy) * n + ix, ((b * T + tgt) * n + iy) * n + ix
-        if row_of is not None:
-            at_src, at_tgt = row_of[at_src], row_of[at_tgt]
         point_in = torch.cat(
             [
                 bilinear_gather(unet, b * T + src, u, v),  # U-Net features at t and t+1
                 bilinear_gather(unet, b * T + tgt, u, v),
-                table[at_src],  # the point's own pillar at t and t+1
-                table[at_tgt],
+                table[((b * T + src) * n + iy) * n + ix],  # the point's own pillar at t and t+1
+                table[((b * T + tgt) * n + iy) * n + ix],
                 point_feats[sel],  # its PointNet feature
             ],
             1,
@@ -312,11 +329,7 @@ class SceneFlowNet(nn.Module):
         offset_in = torch.cat(  # pillar-centre offsets, U-Net-cell offsets, pillar-mean offsets, height
             [raw[:, 3:5], torch.stack([u - u.round(), v - v.round()], 1), raw[:, 5:8], raw[:, 2:3]], 1
         )
-        # Z-order at 1/8 of the pillar size, so that ties (and with them any dependence on
-        # the input order) are rare; from the trained grid's corner, cropped or not
-        origin = pts.new_tensor([-g.half_extent, -g.half_extent, g.z_min])
-        q = torch.floor((pts - origin) / (cfg.voxel_size / MORTON_SUBDIVISION)).long().clamp(min=0)
-        return point_in, offset_in, morton_code(q[:, 0], q[:, 1], q[:, 2])
+        return point_in, offset_in
 
 
 @functools.lru_cache(maxsize=1)
