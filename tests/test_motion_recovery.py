@@ -131,7 +131,7 @@ def sharp_turns(tmp_path_factory):
     return root / "seq"
 
 
-def _run_ssf(sequence, out, recovery: bool, objects: bool = True):
+def _run_ssf(sequence, out, recovery: bool, objects: bool = True, first_step: bool = False):
     """``run_sequence`` of ``ssf`` (odometry backend): per-step (m, deg) errors and run.json."""
     from flowslam.config import load_config
     from flowslam.datasets import open_dataset
@@ -139,6 +139,7 @@ def _run_ssf(sequence, out, recovery: bool, objects: bool = True):
 
     config = load_config(frontend="ssf", backend="odometry", output_dir=str(out),
                          **{"ssf.recovery.enabled": recovery, "ssf.objects.enabled": objects,
+                            "ssf.recovery.check_first_step": first_step,
                             "output.static_map": False, "output.plot": False})
     outcome = run_sequence(sequence, config)
     outcome.raise_for_error()
@@ -159,6 +160,17 @@ def test_sharp_turns_without_recovery_chain_a_wrong_step(sharp_turns, tmp_path, 
     faults = run["fallbacks"]["motion_faults"]
     assert run["fallbacks"]["recoveries"] == 0 and faults["detected"] >= len(bad)
     assert faults["by_outcome"] == {"off": faults["detected"]}  # detected and counted, nothing re-run
+
+
+def test_first_step_check_reinitialises_the_first_step_only(sharp_turns, tmp_path, one_torch_thread):
+    # opt-in: the first step (prior: zero motion, no history for the relative cues) is always
+    # re-initialised; the better-explained solution is kept, later steps are checked as usual
+    errors, run = _run_ssf(sharp_turns, tmp_path, recovery=True, objects=False, first_step=True)
+    worst_m, worst_deg = np.max(errors, axis=0)
+    assert worst_m < STEP_LIMIT_M and worst_deg < STEP_LIMIT_DEG, errors
+    faults = run["fallbacks"]["motion_faults"]
+    assert faults["by_cue"]["first_step"] == 1 and faults["checked"] == 11
+    assert set(faults["by_outcome"]) <= {"kept", "recovered"}
 
 
 def test_sharp_turns_with_recovery_every_step_within_10_cm_and_1_deg(sharp_turns, tmp_path, one_torch_thread):

@@ -40,6 +40,7 @@ FAULT_CUES = {
     "fitness_drop": "the refinement's fitness fell well below that of the last good steps",
     "dynamic_jump": "the network called much more of the scan dynamic than on the last good steps",
     "prior_disagreement": "the measurement is far from the constant-velocity prior",
+    "first_step": "the first step of the sequence, whose prior is no measurement (always checked)",
 }
 
 
