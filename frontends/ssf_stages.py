@@ -285,7 +285,6 @@ class MotionRecoveryStage:
         self.flow_to_pose = flow_to_pose
         self.registration = FpfhRansac(RansacConfig(**self.options.global_start.model_dump()))
         self._features: dict[int, object] = {}  # scan index -> ScanFeatures (the last two)
-        self._checked = 0  # steps checked so far (the first one: cue ``first_step``)
 
     def attach(self, chain_before: list[Stage]) -> None:
         """The chain's stages before this one: a retry runs them again (all but
@@ -294,11 +293,7 @@ class MotionRecoveryStage:
 
     def run(self, state: PairState) -> None:
         evidence = self._evidence(state)
-        faults = self.detector.check(evidence)
-        if self._checked == 0 and self.options.check_first_step:
-            faults.append("first_step")
-        self._checked += 1
-        record: dict = {"faults": faults, "outcome": None}
+        record: dict = {"faults": self.detector.check(evidence), "outcome": None}
         if not record["faults"]:
             self.detector.remember(evidence)
         elif not self.options.enabled:

@@ -46,6 +46,15 @@ def _refined_step(dataset, k: int, T_prior: np.ndarray) -> tuple[StepEvidence, n
                         prior_rotation_rad=rot, prior_translation_m=trans), T
 
 
+def test_first_step_cue_fires_once_and_only_when_asked():
+    good = StepEvidence(fallback=False, refine_accepted=True, refine_fitness=0.8, prior_rotation_rad=0.0,
+                        prior_translation_m=0.0)
+    asked = MotionFaultDetector(MotionRecoveryConfig(check_first_step=True))
+    assert [asked.check(good) for _ in range(3)] == [["first_step"], [], []]
+    default = MotionFaultDetector(MotionRecoveryConfig())
+    assert [default.check(good) for _ in range(3)] == [[], [], []]
+
+
 def test_detector_flags_a_wrong_start_and_not_a_right_one(kitti):
     dataset, ref = kitti
     detector = MotionFaultDetector(MotionRecoveryConfig())

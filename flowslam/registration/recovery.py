@@ -10,7 +10,8 @@ is never used here. What shows a faulty step is the registration's own evidence:
   refinement was rejected; its fitness dropped well below that of the last good steps;
   the network called much more of the scan dynamic than on the last good steps (a wrong
   ego prior makes static structure look moving); the result differs from the prior by
-  more than a plausible change of motion;
+  more than a plausible change of motion; optionally, the step is the sequence's first,
+  whose prior is no measurement;
 - **evidence** (:class:`AlignmentEvidence`, computed only for a faulty step): the share
   of scan k's points that land on scan k-1 under a candidate ``T_prev_curr``; the same
   measure on the same points judges the first solution and the re-initialised one;
@@ -71,16 +72,21 @@ def prior_disagreement(T_prior: np.ndarray, T_prev_curr: np.ndarray) -> tuple[fl
 
 class MotionFaultDetector:
     """The cues of the module doc; the relative ones compare with the medians of the last
-    ``history`` good steps (those :meth:`remember` was given) once there are ``min_history``."""
+    ``history`` good steps (those :meth:`remember` was given) once there are ``min_history``;
+    ``first_step`` (with ``check_first_step``) fires on the first step checked."""
 
     def __init__(self, config: MotionRecoveryConfig | None = None):
         self.config = c = config or MotionRecoveryConfig()
         self._fitness: deque[float] = deque(maxlen=c.history)
         self._dynamic: deque[float] = deque(maxlen=c.history)
+        self._checked = 0  # steps checked so far
 
     def check(self, e: StepEvidence) -> list[str]:
-        """The cues (keys of :data:`FAULT_CUES`) that fire for ``e``; empty: a good step."""
+        """The cues (keys of :data:`FAULT_CUES`) that fire for ``e``, the next step of the
+        sequence; empty: a good step."""
         c = self.config
+        first = self._checked == 0
+        self._checked += 1
         fired = {
             "fallback": e.fallback,
             "refine_rejected": e.refine_accepted is False,
@@ -90,6 +96,7 @@ class MotionFaultDetector:
             and e.dynamic_share > c.dynamic_share_floor,
             "prior_disagreement": e.prior_rotation_rad > np.deg2rad(c.max_prior_rotation_deg)
             or e.prior_translation_m > c.max_prior_translation_m,
+            "first_step": first and c.check_first_step,
         }
         return [cue for cue, on in fired.items() if on]
 
