@@ -19,10 +19,10 @@ at <= -``--margin``, else ``unclear`` (both fit, e.g. a slide along a wall, or n
 hidden). A parked car that ``ssf`` moves comes out ``static``.
 
     python tools/check_moving_objects.py [SEQUENCE] [--poses FILE] [--radius 0.2] [--margin 0.2] [--json OUT]
-        [--weights W]
+        [--weights W] [--config RUN.yaml]
 
 ``--weights`` runs ``ssf`` with those network weights (e.g. from ``flowslam adapt``)
-instead of the shipped ones.
+instead of the shipped ones; ``--config`` with the ``ssf`` section of a run config.
 
 Frames: the reference poses are ``T_world_sensor`` (KITTI layout, one line per scan);
 metres.
@@ -102,9 +102,10 @@ def main() -> None:
     ap.add_argument("--min-points", type=int, default=20)
     ap.add_argument("--json", default=None)
     ap.add_argument("--weights", default=None, help="network weights of ssf (default: shipped)")
+    ap.add_argument("--config", default=None, help="run config YAML whose ssf section replaces the defaults")
     args = ap.parse_args()
 
-    from flowslam.config import SsfConfig
+    from flowslam.config import load_config
     from flowslam.datasets import open_dataset
     from flowslam.frontends.ssf import SsfFrontend
     from flowslam.trajectory import read_trajectory
@@ -122,8 +123,11 @@ def main() -> None:
     if len(poses) != len(frames):
         ap.error(f"{source}: {len(poses)} poses for the {len(frames)} scans of {sequence}")
     print(f"{sequence}: {len(frames)} scans, reference poses from {source}, weights {args.weights or 'shipped'}")
-    network = {"weights": args.weights} if args.weights else {}
-    frontend = SsfFrontend(SsfConfig(lookahead=False, network=network))
+    ssf = load_config(Path(args.config) if args.config else None).ssf
+    ssf = ssf.model_copy(update={"lookahead": False})
+    if args.weights:
+        ssf.network.weights = args.weights
+    frontend = SsfFrontend(ssf)
     outputs = [frontend.process(f) for f in frames]
     records = instance_checks(frames, outputs, poses, args.radius, args.margin, args.min_points)
     print(f"{'scan':>4} {'inst':>4} {'pts':>5} {'centre (sensor, m)':>22} {'extent (m)':>18} {'m/s':>5} {'gain':>6}  verdict")
