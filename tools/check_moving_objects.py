@@ -106,6 +106,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from flowslam.config import load_config
+    from flowslam.errors import InputError
     from flowslam.datasets import open_dataset
     from flowslam.frontends.ssf import SsfFrontend
     from flowslam.trajectory import read_trajectory
@@ -123,10 +124,10 @@ def main() -> None:
     if len(poses) != len(frames):
         ap.error(f"{source}: {len(poses)} poses for the {len(frames)} scans of {sequence}")
     print(f"{sequence}: {len(frames)} scans, reference poses from {source}, weights {args.weights or 'shipped'}")
-    ssf = load_config(Path(args.config) if args.config else None).ssf
-    ssf = ssf.model_copy(update={"lookahead": False})
-    if args.weights:
-        ssf.network.weights = args.weights
+    try:  # the weights given here override the config's; validated like flowslam run's
+        ssf = load_config(args.config, **{"ssf.lookahead": False, "ssf.network.weights": args.weights}).ssf
+    except InputError as error:
+        ap.error(str(error))
     frontend = SsfFrontend(ssf)
     outputs = [frontend.process(f) for f in frames]
     records = instance_checks(frames, outputs, poses, args.radius, args.margin, args.min_points)
