@@ -289,18 +289,30 @@ class STDCB(nn.Module):
         self.norm_o.fold(self.proj)
 
     def forward(self, x: Tensor) -> Tensor:
-        B = x.shape[0]
-        inplace = not torch.is_grad_enabled()  # inference: reuse buffers, no autograd to upset
         fuse = fusable(x) and self.norm_s.folded  # layer + activation as one kernel (folded, CPU inference)
         h = self.norm_e.after(lambda post: linear(x, self.expand, post), fuse) if self.separable else x
         s = self.norm_s.after(lambda post: spatial_conv(h, self.spatial, post), fuse)
         if fuse and self.separable and COMPILED_BLOCKS and h.is_contiguous() and s.is_contiguous():
-            from flowslam.sceneflow.network.compiled_stdcb import gated, temporal_branches
+            out = self._compiled_branches(x, h, s)
+        else:
+            out = self._branches(x, h, s, fuse)
+        return F.leaky_relu(out, 0.1, inplace=True)
 
-            loc, cross, desc = temporal_branches(self, h, s)
-            w = torch.softmax(self.sfs(desc).view(B, 3, self.mid), 1)
-            out = linear_add(gated(self, s, loc, cross, w), self.proj, self.shortcut(x))
-            return F.leaky_relu(out, 0.1, inplace=True)
+    def _compiled_branches(self, x: Tensor, h: Tensor, s: Tensor) -> Tensor:
+        """:meth:`_branches` of a folded separable block, its temporal branches, pooling and
+        gate as two compiled passes (:mod:`compiled_stdcb`)."""
+        from flowslam.sceneflow.network.compiled_stdcb import gated, temporal_branches
+
+        loc, cross, desc = temporal_branches(self, h, s)
+        w = torch.softmax(self.sfs(desc).view(x.shape[0], 3, self.mid), 1)
+        return linear_add(gated(self, s, loc, cross, w), self.proj, self.shortcut(x))
+
+    def _branches(self, x: Tensor, h: Tensor, s: Tensor, fuse: bool) -> Tensor:
+        """The block before its final LeakyReLU: temporal branches of ``h``, Soft Feature
+        Selection with the spatial branch ``s``, temporal gate, projection plus the shortcut
+        of ``x`` (``fuse``: each layer with its activation as one kernel)."""
+        B = x.shape[0]
+        inplace = not torch.is_grad_enabled()  # inference: reuse buffers, no autograd to upset
         loc = self.norm_l.after(lambda post: self.local_t(h, post), fuse)
         cross = self.norm_c.after(lambda post: self.cross_t(h, post), fuse)
         # Soft Feature Selection: per-sample, per-channel softmax over the three branches
@@ -310,16 +322,13 @@ class STDCB(nn.Module):
             fused = s.mul_(w[:, 0]).addcmul_(loc, w[:, 1]).addcmul_(cross, w[:, 2])
             fused.mul_(self.gate(fused, SIGMOID) if fuse else torch.sigmoid_(self.gate(fused)))
             if fuse:  # the projection and the residual add in one kernel
-                out = linear_add(fused, self.proj, self.shortcut(x))
-            else:
-                out = self.norm_o(self.proj(fused))
-                out.add_(self.shortcut(x))
-        else:
-            fused = torch.addcmul(torch.addcmul(s * w[:, 0], loc, w[:, 1]), cross, w[:, 2])
-            # Temporal Gated Block: a sigmoid gate from the fused features' temporal context
-            fused = fused * torch.sigmoid(self.gate(fused))
-            out = self.norm_o(self.proj(fused)) + self.shortcut(x)
-        return F.leaky_relu(out, 0.1, inplace=True)
+                return linear_add(fused, self.proj, self.shortcut(x))
+            out = self.norm_o(self.proj(fused))
+            return out.add_(self.shortcut(x))
+        fused = torch.addcmul(torch.addcmul(s * w[:, 0], loc, w[:, 1]), cross, w[:, 2])
+        # Temporal Gated Block: a sigmoid gate from the fused features' temporal context
+        fused = fused * torch.sigmoid(self.gate(fused))
+        return self.norm_o(self.proj(fused)) + self.shortcut(x)
 
 
 class _Down(nn.Module):
