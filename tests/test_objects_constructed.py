@@ -368,6 +368,25 @@ def test_slow_walkers_keep_their_motion_and_become_two_instances(walkers):
     assert len(np.unique(merged.instance[(labels > 0) & merged.dynamic])) == 1
 
 
+def test_a_far_car_whose_faces_the_beams_sample_apart_stays_one_instance():
+    """At 47 m the beams sample a car's faces farther apart than ``instance_cell_m``: its
+    rear and the part of its side the sensor sees, 0.8 m apart in BEV, are one motion's two
+    components. Joined across ``instance_gap_rad`` times the range (0.94 m there) they are
+    one instance; two walkers 0.5 m apart at 8 m (0.16 m there, under the cell) stay two."""
+    from flowslam.sceneflow.refinement.objects import _parts
+
+    rear = _grid(np.array([0, 1.8, 0]), np.array([0, 0, 1.5]), np.array([47.0, 2.0, 0.0]))
+    side = _grid(np.array([3.4, 0, 0]), np.array([0, 0, 1.5]), np.array([47.8, 2.0, 0.0]))
+    car = np.concatenate([rear, side])
+    one_motion = np.zeros(len(car), dtype=np.int64)
+    assert len(np.unique(_parts(car, one_motion, ObjectRefinementConfig(instance_gap_rad=0.0)))) == 2
+    parts = _parts(car, one_motion, ObjectRefinementConfig(instance_gap_rad=0.02))
+    assert np.all(parts == 0)
+    walkers = np.concatenate([_box(8.0, y, (0.5, 0.5, 1.7)) for y in (0.0, 1.0)])
+    parts = _parts(walkers, np.zeros(len(walkers), dtype=np.int64), ObjectRefinementConfig(instance_gap_rad=0.02))
+    assert len(np.unique(parts)) == 2
+
+
 def test_the_flow_segmentation_loop_stops_when_the_rounds_agree():
     """``refine_objects`` with ``iterations`` on the two-car scene: each round starts from the
     previous round's flow and labels and finds the same segmentation up to a few points

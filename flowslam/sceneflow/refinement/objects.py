@@ -1111,14 +1111,16 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
 
 def _parts(p: np.ndarray, which: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
     """(M,) part of each moving point of an object: grouped by the motion it took
-    (``which``), each group split into BEV connected components of ``instance_cell_m``;
-    components under ``min_points`` join the largest of their group. Numbered by group,
-    then by size (part 0: the largest of the first motion's)."""
+    (``which``), each group split into BEV connected components of ``instance_cell_m``
+    (joined across ``instance_gap_rad`` times the group's median range); components under
+    ``min_points`` join the largest of their group. Numbered by group, then by size (part 0:
+    the largest of the first motion's)."""
     parts = np.empty(len(p), dtype=np.int64)
     n = 0
     for m in np.unique(which):
         sel = np.flatnonzero(which == m)
-        labels, big = _joined_components(p[sel], c)
+        gap = c.instance_gap_rad * float(np.median(np.hypot(p[sel, 0], p[sel, 1])))
+        labels, big = _joined_components(p[sel], c, gap)
         number = np.empty(int(labels.max()) + 1, dtype=np.int64)
         number[big] = n + np.arange(len(big))
         parts[sel] = number[labels]
@@ -1183,18 +1185,37 @@ def _heads(q: np.ndarray) -> np.ndarray:
     return np.array(heads).reshape(-1, 2)
 
 
-def _joined_components(p: np.ndarray, c: ObjectRefinementConfig) -> tuple[np.ndarray, np.ndarray]:
-    """BEV connected components of ``instance_cell_m`` of the (M,3) points ``p``: (M,) the
-    component of each point, where those under ``min_points`` have joined the largest, and
-    the labels of the components kept, largest first (the largest alone when none has
+def _joined_components(p: np.ndarray, c: ObjectRefinementConfig,
+                       gap: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """BEV connected components of ``instance_cell_m`` of the (M,3) points ``p`` (m), also
+    joined where their points come within ``gap`` (m; only when wider than the cell): (M,)
+    the component of each point, where those under ``min_points`` have joined the largest,
+    and the labels of the components kept, largest first (the largest alone when none has
     ``min_points``)."""
     labels = bev_clusters(p, c.instance_cell_m)
+    if gap > c.instance_cell_m:
+        labels = _joined_within(p[:, :2], labels, gap)
     counts = np.bincount(labels)
     order = np.argsort(-counts, kind="stable")
     big = order[counts[order] >= c.min_points]
     if big.size == 0:
         big = order[:1]
     return np.where(np.isin(labels, big), labels, big[0]), big
+
+
+def _joined_within(xy: np.ndarray, labels: np.ndarray, gap: float) -> np.ndarray:
+    """(M,) ``labels`` (components of the BEV points ``xy``, m) with the components that
+    have points within ``gap`` (m) of each other merged, renumbered from 0."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(xy).query_pairs(gap, output_type="ndarray")
+    a, b = labels[pairs[:, 0]], labels[pairs[:, 1]]
+    across = a != b
+    n = int(labels.max()) + 1
+    graph = coo_matrix((np.ones(np.count_nonzero(across)), (a[across], b[across])), shape=(n, n))
+    return connected_components(graph, directed=False)[1][labels]
 
 
 def _on_own_surface(ego: np.ndarray, landing: np.ndarray, kept: np.ndarray, solid: np.ndarray,
