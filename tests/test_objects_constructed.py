@@ -371,8 +371,8 @@ def test_slow_walkers_keep_their_motion_and_become_two_instances(walkers):
 def test_a_far_car_whose_faces_the_beams_sample_apart_stays_one_instance():
     """At 47 m the beams sample a car's faces farther apart than ``instance_cell_m``: its
     rear and the part of its side the sensor sees, 0.8 m apart in BEV, are one motion's two
-    components. Joined across ``instance_gap_rad`` times the range (0.94 m there) they are
-    one instance; two walkers 0.5 m apart at 8 m (0.16 m there, under the cell) stay two."""
+    components. Joined across ``instance_gap_rad`` times the range (about 1 m there) they are
+    one instance; two walkers 0.5 m apart at 8 m (0.17 m there, under the cell) stay two."""
     from flowslam.sceneflow.refinement.objects import _parts
 
     rear = _grid(np.array([0, 1.8, 0]), np.array([0, 0, 1.5]), np.array([47.0, 2.0, 0.0]))
