@@ -387,6 +387,32 @@ def test_a_far_car_whose_faces_the_beams_sample_apart_stays_one_instance():
     assert len(np.unique(parts)) == 2
 
 
+def test_walkers_joined_only_at_their_feet_become_two_instances_and_a_car_stays_whole():
+    """Two walkers 0.4 m apart whose feet and the ground between them are flagged moving
+    touch in BEV at ``instance_cell_m``: one component. Clear of the ground they are two,
+    each a person wide, so with ``above_ground`` they become two instances, each keeping
+    its own feet. A car whose sides part above its wheels (two 2 m pieces clear of the
+    ground) stays one instance: its pieces are wider than a person."""
+    from flowslam.sceneflow.refinement.objects import _parts
+
+    people = [_box(8.0, y, (0.5, 0.5, 1.7)) for y in (0.0, 0.9)]
+    between = _grid(np.array([0.5, 0, 0]), np.array([0, 0.4, 0]), np.array([8.0, 0.5, 0.0]))
+    walkers = np.concatenate([*people, between])
+    one_motion = np.zeros(len(walkers), dtype=np.int64)
+    c = ObjectRefinementConfig()
+    assert len(np.unique(_parts(walkers, one_motion, c))) == 1
+    parts = _parts(walkers, one_motion, c, walkers[:, 2] > 0.3)
+    assert len(np.unique(parts)) == 2
+    first = np.arange(len(people[0]))
+    assert len(np.unique(parts[first])) == 1 and not np.isin(parts[len(people[0]):len(walkers) - len(between)],
+                                                            parts[first]).any()
+    pieces = [_box(x, 3.0, (2.0, 1.8, 1.2)) + [0, 0, 0.4] for x in (10.0, 12.7)]
+    wheels = _grid(np.array([4.7, 0, 0]), np.array([0, 0, 0.4]), np.array([10.0, 3.0, 0.0]))
+    car = np.concatenate([*pieces, wheels])
+    parts = _parts(car, np.zeros(len(car), dtype=np.int64), c, car[:, 2] > 0.3)
+    assert np.all(parts == 0)
+
+
 def test_the_flow_segmentation_loop_stops_when_the_rounds_agree():
     """``refine_objects`` with ``iterations`` on the two-car scene: each round starts from the
     previous round's flow and labels and finds the same segmentation up to a few points

@@ -592,7 +592,8 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
                 flow[mine], dynamic[mine] = rigid_flow(T_ego, source[mine]), False
                 objects[own]["embedded"] = True
     still = _split_instances(source, flow, dynamic & settled, instance, motion_of, objects, T_ego, interval, surface, c,
-                             range_image if c.split_visible else None, seen)
+                             range_image if c.split_visible else None, seen,
+                             above_ground if c.split_above_ground else None)
     flow[still], dynamic[still] = rigid_flow(T_ego, source[still]), False
     # the rest of the network's dynamic points: static if the ego motion lands them on a surface
     # of scan k; those outside the candidates' range (in no object) ask every point of scan k,
@@ -1057,7 +1058,7 @@ def _leftover_motion(p: np.ndarray, flow: np.ndarray, ego: np.ndarray, motions: 
 def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, instance: np.ndarray,
                      motion_of: np.ndarray, objects: list[dict], T_ego: np.ndarray, interval: float,
                      surface: ScanSurface, c: ObjectRefinementConfig, range_image=None,
-                     seen: np.ndarray | None = None) -> np.ndarray:
+                     seen: np.ndarray | None = None, above_ground: np.ndarray | None = None) -> np.ndarray:
     """Split every object's ``moving`` points into instances (:func:`_parts`: by the motion
     they took, ``motion_of``, then by ``instance_cell_m`` components); part 0 keeps the
     object's entry and ``instance`` id, each further part gets a new entry (``part_of``)
@@ -1080,7 +1081,8 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
     order = np.argsort(instance[idx], kind="stable")
     for members in np.split(order, np.flatnonzero(np.diff(instance[idx][order])) + 1):
         own = int(instance[idx[members[0]]])
-        parts = _parts(source[idx[members]], motion_of[idx[members]], c)
+        parts = _parts(source[idx[members]], motion_of[idx[members]], c,
+                       None if above_ground is None else above_ground[idx[members]])
         objects[own]["speed_mps"] = 0.0
         for part in range(int(parts.max()) + 1):
             sel = members[parts == part]
@@ -1109,7 +1111,8 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
     return still
 
 
-def _parts(p: np.ndarray, which: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
+def _parts(p: np.ndarray, which: np.ndarray, c: ObjectRefinementConfig,
+           above_ground: np.ndarray | None = None) -> np.ndarray:
     """(M,) part of each moving point of an object: grouped by the motion it took
     (``which``), each group split into BEV connected components of ``instance_cell_m``
     (joined across ``instance_gap_rad`` times the group's median range); components under
@@ -1121,6 +1124,8 @@ def _parts(p: np.ndarray, which: np.ndarray, c: ObjectRefinementConfig) -> np.nd
         sel = np.flatnonzero(which == m)
         gap = c.instance_gap_rad * float(np.median(np.hypot(p[sel, 0], p[sel, 1])))
         labels, big = _joined_components(p[sel], c, gap)
+        if above_ground is not None:
+            labels, big = _people_apart_above_ground(p[sel], above_ground[sel], labels, big, gap, c)
         number = np.empty(int(labels.max()) + 1, dtype=np.int64)
         number[big] = n + np.arange(len(big))
         parts[sel] = number[labels]
@@ -1136,6 +1141,26 @@ farther apart), by this much (m) than every cell exactly two cells away (shoulde
 arms): a flat top (a box, a car's roof) has no head."""
 PERSON_MAX_EXTENT_M = 1.2
 """A group of people is split only when each person is at most this wide (BEV diagonal, m)."""
+
+
+def _people_apart_above_ground(p: np.ndarray, high: np.ndarray, labels: np.ndarray, big: np.ndarray, gap: float,
+                               c: ObjectRefinementConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``labels`` and ``big`` (:func:`_joined_components` of the (M,3) points ``p``), or the
+    components of the points clear of the ground (``high``), each low point joined to the
+    component of its nearest high point (BEV), when those are more, and each is at most
+    ``PERSON_MAX_EXTENT_M`` wide: walkers whose feet, or the ground flagged between them,
+    touch in BEV. A vehicle whose sparse sides part above its wheels stays whole."""
+    from scipy.spatial import cKDTree
+
+    idx = np.flatnonzero(high)
+    if idx.size < c.min_points or idx.size == len(p):
+        return labels, big
+    labels_high, big_high = _joined_components(p[idx], c, gap)
+    if len(big_high) <= len(big):
+        return labels, big
+    if bev_extent(p[idx, :2], labels_high, int(labels_high.max()) + 1)[big_high].max() > PERSON_MAX_EXTENT_M:
+        return labels, big
+    return labels_high[cKDTree(p[idx, :2]).query(p[:, :2])[1]], big_high
 
 
 def _people(p: np.ndarray, c: ObjectRefinementConfig) -> list[np.ndarray]:
