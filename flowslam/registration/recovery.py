@@ -79,14 +79,13 @@ class MotionFaultDetector:
         self.config = c = config or MotionRecoveryConfig()
         self._fitness: deque[float] = deque(maxlen=c.history)
         self._dynamic: deque[float] = deque(maxlen=c.history)
-        self._checked = 0  # steps checked so far
+        self._first = True  # no step checked yet
 
     def check(self, e: StepEvidence) -> list[str]:
         """The cues (keys of :data:`FAULT_CUES`) that fire for ``e``, the next step of the
         sequence; empty: a good step."""
         c = self.config
-        first = self._checked == 0
-        self._checked += 1
+        first, self._first = self._first, False
         fired = {
             "fallback": e.fallback,
             "refine_rejected": e.refine_accepted is False,

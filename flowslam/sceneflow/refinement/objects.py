@@ -1060,7 +1060,8 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
                      surface: ScanSurface, c: ObjectRefinementConfig, range_image=None,
                      seen: np.ndarray | None = None, above_ground: np.ndarray | None = None) -> np.ndarray:
     """Split every object's ``moving`` points into instances (:func:`_parts`: by the motion
-    they took, ``motion_of``, then by ``instance_cell_m`` components); part 0 keeps the
+    they took, ``motion_of``, then by ``instance_cell_m`` components, and with ``above_ground``
+    (scan k-1's points clear of the ground) apart where only their low points touch); part 0 keeps the
     object's entry and ``instance`` id, each further part gets a new entry (``part_of``)
     appended to ``objects``. A part (part 0 too) that the ego motion explains as well as
     its own landings do (:func:`_ego_explains` on scan k's ``surface``) stays static: a
