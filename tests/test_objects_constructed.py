@@ -703,6 +703,33 @@ def test_walkers_in_a_crowd_become_one_instance_each(crowd):
     assert np.allclose(runs[True].flow, runs[False].flow, atol=1e-6)  # Open3D's sums vary run to run (~1e-11 m)
 
 
+def test_walkers_with_stray_points_far_off_are_split_by_the_points_around_their_heads():
+    """Two people side by side (bodies 10 cm apart: one BEV component) and 20 stray points 2 m
+    off (ground merged into their instance). Every point goes to its nearest head, so the
+    stray points make one group ~2.5 m wide and the width rule alone keeps the instance
+    whole; with ``people_core_share`` (most points lie within 0.6 m of a head) it becomes
+    one instance per person. A car with two bumps on its roof (two heads) stays whole: its
+    points spread along its length."""
+    from flowslam.sceneflow.refinement.objects import _heads, _people
+
+    people = [_person(6.0, y) for y in (-2.0, -1.45)]
+    stray = RNG.random((20, 3)) * [0.4, 0.4, 0.05] + [6.0, 0.55, 0.0]
+    p = np.concatenate([*people, stray])
+    width_only, core = ObjectRefinementConfig(people_core_share=1.01), ObjectRefinementConfig(people_core_share=0.7)
+    assert len(_people(p, width_only)) == 1
+    groups = _people(p, core)
+    assert len(groups) == 2
+    owner = np.full(len(p), -1)
+    for g, idx in enumerate(groups):
+        owner[idx] = g
+    first, second = owner[:len(people[0])], owner[len(people[0]):len(people[0]) + len(people[1])]
+    assert len(set(first)) == 1 and len(set(second)) == 1 and first[0] != second[0]
+    bump = _box(0.0, 0.0, (0.16, 0.16, 0.3)) + [0.0, 0.0, 1.5]
+    car = np.concatenate([_car(8.0, 2.0), bump + [8.8, 2.8, 0.0], bump + [11.2, 2.8, 0.0]])
+    assert len(_heads(car)) >= 2
+    assert len(_people(car, core)) == 1
+
+
 def test_a_bus_rear_whose_ego_landing_is_its_own_side_keeps_the_bus_motion():
     """The 18 m bus slides 1.0 m along itself past a standing sensor (network flow exact,
     its front 11 m geometric movers). The ego landings of points near its rear lie on its

@@ -297,6 +297,15 @@ class ObjectRefinementConfig(StrictModel):
     the labels are not changed. Fresh ``rush-hour`` 274 / 275: instance recall 0.598 /
     0.547 -> 0.662 / 0.614, precision 0.843 / 0.820 -> 0.869 / 0.850; ``dt``, ``static``,
     the real AV2 pair and KITTI unchanged (docs/sceneflow_evaluation.md)."""
+    people_core_share: float = Field(0.7, ge=0)
+    """With ``split_people``: an instance with two or more heads is also split when at least
+    this share of its points lie within 0.6 m (BEV) of a head and each head has
+    ``min_points`` such points, however wide the stray rest makes a group
+    (:func:`flowslam.sceneflow.refinement.objects._around_heads`); above 1: only when every
+    group is at most a person wide. Instance ids only. Adopted by a rule written before
+    fresh seeds (stop 51): fresh ``rush-hour`` 561 / 562 instance recall 0.699 / 0.777 ->
+    0.734 / 0.805, precision 0.872 / 0.922 -> 0.892 / 0.935; ``dt`` 563 / 564 and ``static``
+    565 unchanged (docs/sceneflow_evaluation.md)."""
     split_extent_m: float = Field(8.0, ge=0)
     """Clusters wider than this (BEV diagonal, m; 0: never) are also registered as their
     ``instance_cell_m`` components (at least ``min_points`` each), which replace the cluster

@@ -1169,19 +1169,35 @@ def _people(p: np.ndarray, c: ObjectRefinementConfig) -> list[np.ndarray]:
     people, one per head (index arrays, the largest first), or ``[all]``: walkers close
     together touch in BEV. Heads are local maxima of a BEV height map that stand out from
     the cells around them (:func:`_heads`); every point goes to its nearest head. Split
-    only when the instance is wider than ``PERSON_MAX_EXTENT_M``, has at least two heads,
-    and every group holds ``min_points`` points and is at most that wide."""
+    only when the instance is wider than ``PERSON_MAX_EXTENT_M`` and has at least two
+    heads, and either every group holds ``min_points`` points and is at most that wide, or
+    the points gather around the heads (:func:`_around_heads`: a few stray points far
+    off, merged static ones or a piece of something else, then make a group wider)."""
     whole = [np.arange(len(p))]
     if len(p) < 2 * c.min_points or np.hypot(*np.ptp(p[:, :2], axis=0)) <= PERSON_MAX_EXTENT_M:
         return whole
     heads = _heads(p)
     if len(heads) < 2:
         return whole
-    near = np.argmin(((p[:, None, :2] - heads[None, :, :]) ** 2).sum(axis=2), axis=1)
+    dist2 = ((p[:, None, :2] - heads[None, :, :]) ** 2).sum(axis=2)
+    near = np.argmin(dist2, axis=1)
     counts = np.bincount(near, minlength=len(heads))
-    if counts.min() < c.min_points or bev_extent(p[:, :2], near, len(heads)).max() > PERSON_MAX_EXTENT_M:
+    narrow = counts.min() >= c.min_points and bev_extent(p[:, :2], near, len(heads)).max() <= PERSON_MAX_EXTENT_M
+    if not (narrow or _around_heads(dist2[np.arange(len(p)), near], near, len(heads), c)):
         return whole
     return [np.flatnonzero(near == h) for h in np.argsort(-counts, kind="stable")]
+
+
+def _around_heads(dist2: np.ndarray, near: np.ndarray, n_heads: int, c: ObjectRefinementConfig) -> bool:
+    """Whether points at squared BEV distances ``dist2`` (m^2) from their nearest head
+    ``near`` (of ``n_heads``) gather around the heads: at least ``people_core_share`` of
+    them lie within half a person's width (``PERSON_MAX_EXTENT_M`` / 2) of it, and each head
+    has ``min_points`` such points. A vehicle's points spread over its length (measured on
+    simulated vehicles with two height peaks: at most ~0.5 of them lie that near)."""
+    if c.people_core_share > 1:
+        return False
+    core = dist2 <= (PERSON_MAX_EXTENT_M / 2) ** 2
+    return bool(core.mean() >= c.people_core_share and np.bincount(near[core], minlength=n_heads).min() >= c.min_points)
 
 
 def _heads(q: np.ndarray) -> np.ndarray:
