@@ -100,6 +100,19 @@ def test_the_ego_motion_explains_an_object_within_the_noise_of_its_few_points():
     assert not _ego_explains((0.80, 0.010), 0.867, 0.033, 1000, c)
 
 
+def test_a_part_of_a_moving_object_keeps_moving_with_the_stricter_rmse_ratio():
+    """The parts test (``part_rmse_ratio`` 1.0) against the objects' (``static_rmse_ratio``
+    1.2): a slow walker in a crowd whose ego landings fit as many points as its own, at an
+    inlier RMSE of 5.0 cm against 4.0 cm: 0.050 <= 1.2 x 0.040 + 0.005 = 0.053, so the
+    object test calls it explained; 0.050 > 1.0 x 0.040 + 0.005 = 0.045, so the part keeps
+    moving. Below the 3.5 cm floor both call it explained."""
+    c = ObjectRefinementConfig()
+    assert c.part_rmse_ratio == 1.0 and c.static_rmse_ratio == 1.2
+    assert _ego_explains((1.0, 0.050), 0.97, 0.040, 37, c)
+    assert not _ego_explains((1.0, 0.050), 0.97, 0.040, 37, c, c.part_rmse_ratio)
+    assert _ego_explains((1.0, 0.034), 0.97, 0.025, 37, c, c.part_rmse_ratio)
+
+
 def _surface(a, b, origin, step: float, rng) -> np.ndarray:
     """Random points on the parallelogram origin + s a + t b, one per step x step on average."""
     n = int(np.linalg.norm(np.cross(a, b)) / step**2)
