@@ -492,9 +492,10 @@ class ObjectsStage:
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
                                  state.refined.target_tree, movers, seen, surface, above, image)
         held = hold_tracks(prev, objects, tracked, tracked_flow, T_ego, state.dt, surface, older, c)
-        accepted = np.array([o["accepted"] for o in objects.objects] + [False])  # [-1] -> False
+        # instances: accepted objects and the unregistered movers' (the rest: -1)
+        kept = np.array([o["accepted"] or o.get("unregistered", False) for o in objects.objects] + [False])
         state.flow, state.static = objects.flow, ~objects.dynamic
-        state.instance = np.where(accepted[objects.instance], objects.instance, -1)
+        state.instance = np.where(kept[objects.instance], objects.instance, -1)
         self.movers.update(prev, objects.flow, objects.dynamic, T_ego, ground)
         state.stats.update(objects.stats, tracked_candidates=int(tracked.sum()), tracked_held=held)
 

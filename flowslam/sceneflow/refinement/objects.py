@@ -81,7 +81,9 @@ __all__ = ["ObjectRefinement", "hold_tracks", "refine_objects"]
 class ObjectRefinement:
     """``flow`` (N,3) and ``dynamic`` (N,) bool for every source point after refinement;
     ``instance`` (N,) int: the point's entry in ``objects`` (-1: none); ``objects``: one
-    dict per object tried (points, fitness, speed, accepted)."""
+    dict per object tried (points, fitness, speed, accepted), per further instance of a
+    moving object (``part_of``), per held track (``held``) and per instance of dynamic
+    points that no accepted object holds (``unregistered``)."""
 
     flow: np.ndarray
     dynamic: np.ndarray
@@ -614,6 +616,10 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
         dynamic[rest[on_surface]] = False
     static = ~dynamic & ~settled
     flow[static] = rigid_flow(T_ego, source[static])
+    unregistered = 0
+    if c.unregistered_instances:
+        unregistered = _number_unregistered(source, flow, dynamic & clear, instance, objects, T_ego, interval,
+                                            above_ground if c.split_above_ground else None, c)
     stats = {
         "object_candidates": int(cand.size),
         "objects": len(objects),
@@ -621,6 +627,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
         "objects_dynamic": sum(1 for o in objects if o.get("speed_mps", 0.0) > c.dynamic_speed_mps),
         "relabelled_static": int(on_surface.sum()),
         "road_clusters": road,
+        "unregistered_instances": unregistered,
     }
     return ObjectRefinement(flow, dynamic, instance, objects, stats)
 
@@ -1104,8 +1111,7 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
                 continue
             # a moving part is one instance, or one per person (a crowd); the people split
             # only numbers instances, it decides nothing about motion
-            groups = _people(source[mine], c) if c.split_people else [np.arange(len(mine))]
-            for g, group in enumerate(groups):
+            for g, group in enumerate(_per_person(source[mine], c)):
                 speed = float(np.median(departure[sel[group]]))
                 if part == 0 and g == 0:
                     objects[own]["speed_mps"] = speed
@@ -1113,6 +1119,53 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
                 instance[mine[group]] = len(objects)
                 objects.append({"points": int(len(group)), "part_of": own, "accepted": True, "speed_mps": speed})
     return still
+
+
+def _per_person(p: np.ndarray, c: ObjectRefinementConfig) -> list[np.ndarray]:
+    """The moving points ``p`` (M,3) of one part as its instances (index arrays): one per
+    person with ``split_people`` (:func:`_people`), else all in one."""
+    return _people(p, c) if c.split_people else [np.arange(len(p))]
+
+
+def _number_unregistered(source: np.ndarray, flow: np.ndarray, dynamic: np.ndarray, instance: np.ndarray,
+                         objects: list[dict], T_ego: np.ndarray, interval: float, above_ground: np.ndarray | None,
+                         c: ObjectRefinementConfig) -> int:
+    """``unregistered_instances``: the ``dynamic`` points of ``source`` (frame k-1; the
+    caller leaves out those within ``min_range_m``, the ego vehicle's body, which moves with
+    the sensor) that no accepted entry of ``objects`` holds get instances of their own
+    (``instance`` and ``objects`` updated in place; each new entry has ``unregistered:
+    True``, ``accepted: False`` (no registration of it was accepted) and its speed, the
+    median departure (m/s) of its landings ``source + flow`` from the ego landings over
+    ``interval`` s): grouped by the object they were registered in, or, outside every
+    object, by ``cluster_cell_m`` BEV clusters; then split as :func:`_split_instances`
+    splits a moving object (:func:`_parts` with ``above_ground``, :func:`_per_person`); an
+    instance needs ``min_points`` points (smaller fragments stay dynamic without one).
+    Returns the number of new instances."""
+    accepted = np.array([o["accepted"] for o in objects] + [False])  # instance -1 -> False
+    idx = np.flatnonzero(dynamic & ~accepted[instance])
+    if idx.size == 0:
+        return 0
+    groups = [idx[instance[idx] == own] for own in np.unique(instance[idx]) if own >= 0]
+    loose = idx[instance[idx] < 0]
+    if loose.size:
+        labels = bev_clusters(source[loose], c.cluster_cell_m)
+        order = np.argsort(labels, kind="stable")
+        groups += np.split(loose[order], np.flatnonzero(np.diff(labels[order])) + 1)
+    departure = np.zeros(len(source))
+    departure[idx] = np.linalg.norm(source[idx] + flow[idx] - transform_points(T_ego, source[idx]), axis=1) / interval
+    first = len(objects)
+    for members in groups:
+        parts = _parts(source[members], np.zeros(len(members), dtype=np.int64), c,
+                       None if above_ground is None else above_ground[members])
+        for part in range(int(parts.max()) + 1):
+            mine = members[parts == part]
+            for group in _per_person(source[mine], c):
+                if len(group) < c.min_points:  # a fragment: dynamic, but no object
+                    continue
+                instance[mine[group]] = len(objects)
+                objects.append({"points": int(len(group)), "accepted": False, "unregistered": True,
+                                "speed_mps": float(np.median(departure[mine[group]]))})
+    return len(objects) - first
 
 
 def _parts(p: np.ndarray, which: np.ndarray, c: ObjectRefinementConfig,
