@@ -309,11 +309,11 @@ class ObjectRefinementConfig(StrictModel):
     unregistered_instances: bool = True
     """Dynamic points beyond ``min_range_m`` that no accepted object holds (a cluster whose
     ICP was not accepted, or the network's movers outside every cluster, each kept dynamic
-    because its ego landing is off scan k's surface) become instances too: grouped by the cluster they
-    were in (else by ``cluster_cell_m`` BEV clusters) and split as the registered ones
-    (:func:`flowslam.sceneflow.refinement.objects._parts`, ``split_people``), each of at
-    least ``min_points`` (smaller fragments keep no instance); their flow and labels are
-    not changed. False: they stay dynamic without an instance (no row in
+    because its ego landing is off scan k's surface) become instances too: grouped by the
+    cluster they were in (else by ``cluster_cell_m`` BEV clusters) and split as the
+    registered ones (:func:`flowslam.sceneflow.refinement.objects._parts`,
+    ``split_people``), each of at least ``min_points`` (smaller fragments keep no
+    instance); their flow and labels are not changed. False: they stay dynamic without an instance (no row in
     ``moving_objects.csv``). Adopted by a rule written before fresh seeds (stop 52): fresh
     ``rush-hour`` 591 / 592 instance recall 0.793 / 0.817 -> 0.814 / 0.855, precision
     0.904 / 0.931 -> 0.898 / 0.928; ``dt`` 593 recall 0.745 -> 0.754, 594 and ``static``
