@@ -501,7 +501,7 @@ def test_an_object_is_not_lifted_onto_a_copy_of_itself_above():
     objects move on the ground, so that motion is refused (``vertical_margin_m``) and no
     object is accepted; with no vertical limit the motion that lifts it is taken (and, with
     ``horizontal_departure`` off as well, the object moves: straight up is no motion on the
-    ground). (From a
+    ground, and with ``flat_motion`` off, its flow keeps the climb). (From a
     zero guess the ICP mostly stays on the road: whether it climbed to the copy depended
     on the random samples, so the guess now starts it there.)"""
     road = _grid(np.array([30.0, 0, 0]), np.array([0, 12.0, 0]), np.array([-5.0, -6.0, -0.01]))
@@ -514,7 +514,8 @@ def test_an_object_is_not_lifted_onto_a_copy_of_itself_above():
     flow[dynamic, 2] = 0.7  # the network's guess: the copy above
     args = (prev, flow, dynamic, curr, np.eye(4), DT)
     kept = refine_objects(*args, ObjectRefinementConfig())
-    lifted = refine_objects(*args, ObjectRefinementConfig(vertical_margin_m=10.0, horizontal_departure=False))
+    lifted = refine_objects(*args, ObjectRefinementConfig(vertical_margin_m=10.0, horizontal_departure=False,
+                                                          flat_motion=False))
     assert not any(o["accepted"] for o in kept.objects)
     assert not refine_objects(*args, ObjectRefinementConfig(vertical_margin_m=10.0)).dynamic[dynamic].any()
     accepted = [o for o in lifted.objects if o["accepted"]]
@@ -529,7 +530,8 @@ def test_a_departure_mostly_up_or_down_is_not_motion(shift, moving_by_default):
     landing's plane; within the lift limits). 2 cm sideways and 9 cm up is 0.93 m/s in 3D
     but 0.2 m/s on the ground: with ``horizontal_departure`` (the default) it stays static,
     without it it moves (real KITTI: sparse clusters on vegetation and poles slid a few
-    centimetres up or down). 7 cm sideways moves either way."""
+    centimetres up or down) with the ICP's 3D flow (``flat_motion`` off too). 7 cm
+    sideways moves either way."""
     road = _grid(np.array([30.0, 0, 0]), np.array([0, 12.0, 0]), np.array([-5.0, -6.0, -0.01]))
     sign = lambda: _box(6.0, -2.0, (0.6, 0.6, 0.3)) + [0.0, 0.0, 1.0]
     prev = np.concatenate([road, sign()])
@@ -540,7 +542,7 @@ def test_a_departure_mostly_up_or_down_is_not_motion(shift, moving_by_default):
     flow[dynamic] = shift  # the network's guess
     args = (prev, flow, dynamic, curr, np.eye(4), DT)
     default = refine_objects(*args, ObjectRefinementConfig())
-    three_d = refine_objects(*args, ObjectRefinementConfig(horizontal_departure=False))
+    three_d = refine_objects(*args, ObjectRefinementConfig(horizontal_departure=False, flat_motion=False))
     assert three_d.dynamic[dynamic].mean() > 0.9
     assert np.abs(np.median(three_d.flow[dynamic & three_d.dynamic], axis=0) - shift).max() < 0.02
     assert (default.dynamic[dynamic].mean() > 0.9) == moving_by_default

@@ -453,7 +453,8 @@ def refine_objects(
 
     ``flow`` (N,3) is the network's flow, ``dynamic`` (N,) its labels, ``dt`` the scan
     interval (s). In the result, static points have the ego-rigid flow of ``T_ego``,
-    registered objects their own rigid flow, other dynamic points the network's flow. ``target_tree``
+    registered objects their own rigid flow, other dynamic points the network's flow (with
+    ``flat_motion``, every dynamic point's flow keeps its ego landing's height). ``target_tree``
     may be a ``scipy.spatial.cKDTree`` over (a downsampling of) ``target``. ``movers`` and
     ``seen_through`` (N,) bool: geometric motion evidence
     (:func:`flowslam.sceneflow.refinement.visibility.geometric_movers`); movers become candidates, and
@@ -491,8 +492,18 @@ def refine_objects(
         result = nxt
         if relabelled <= c.converged_share * either and moved <= c.converged_flow_m:
             break
+    if c.flat_motion:
+        _level(source, result.flow, np.flatnonzero(result.dynamic), T_ego)
     result.stats.update(iterations=len(changes) + 1, round_changes=changes)
     return result
+
+
+def _level(source: np.ndarray, flow: np.ndarray, idx: np.ndarray, T_ego: np.ndarray) -> None:
+    """``flat_motion``: the ``flow`` (updated in place) of the points ``idx`` of ``source``
+    (frame k-1) with the height of their ego landings (``T_ego`` = ``T_{k,k-1}``; frame k,
+    z up): each departs from its ego landing horizontally only."""
+    if idx.size:
+        flow[idx, 2] = rigid_flow(T_ego, source[idx])[:, 2]
 
 
 def hold_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarray, tracked_flow: np.ndarray,
@@ -531,6 +542,8 @@ def hold_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarra
         if free.mean() < c.hold_free_share:
             continue
         result.flow[idx], result.dynamic[idx], result.instance[idx] = landing - p, True, len(result.objects)
+        if c.flat_motion:
+            _level(source, result.flow, idx, T_ego)
         result.objects.append({"points": int(len(idx)), "accepted": True, "held": True, "fitness": fitness,
                                "speed_mps": speed})
         held += len(idx)
