@@ -313,12 +313,12 @@ class ObjectRefinementConfig(StrictModel):
     cluster they were in (else by ``cluster_cell_m`` BEV clusters) and split as the
     registered ones (:func:`flowslam.sceneflow.refinement.objects._parts`,
     ``split_people``), each of at least ``min_points`` (smaller fragments keep no
-    instance); their flow and labels are not changed. False: they stay dynamic without an instance (no row in
-    ``moving_objects.csv``). Adopted by a rule written before fresh seeds (stop 52): fresh
-    ``rush-hour`` 591 / 592 instance recall 0.793 / 0.817 -> 0.814 / 0.855, precision
-    0.904 / 0.931 -> 0.898 / 0.928; ``dt`` 593 recall 0.745 -> 0.754, 594 and ``static``
-    595 unchanged; real KITTI 0-15: 37 -> 42 instances of >= 15 points over 15 pairs
-    (docs/sceneflow_evaluation.md)."""
+    instance); their flow and labels are not changed. False: they stay dynamic without an
+    instance (no row in ``moving_objects.csv``). Adopted by a rule written before fresh
+    seeds (stop 52): fresh ``rush-hour`` 591 / 592 instance recall 0.793 / 0.817 -> 0.814 /
+    0.855, precision 0.904 / 0.931 -> 0.898 / 0.928; ``dt`` 593 recall 0.745 -> 0.754, 594
+    and ``static`` 595 unchanged; real KITTI 0-15: 37 -> 42 instances of >= 15 points over
+    15 pairs (docs/sceneflow_evaluation.md)."""
     split_extent_m: float = Field(8.0, ge=0)
     """Clusters wider than this (BEV diagonal, m; 0: never) are also registered as their
     ``instance_cell_m`` components (at least ``min_points`` each), which replace the cluster

@@ -1102,8 +1102,7 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
         return still
     ego = transform_points(T_ego, source[idx])
     departure = np.linalg.norm(source[idx] + flow[idx] - ego, axis=1) / interval
-    order = np.argsort(instance[idx], kind="stable")
-    for members in np.split(order, np.flatnonzero(np.diff(instance[idx][order])) + 1):
+    for members in _runs(instance[idx]):
         own = int(instance[idx[members[0]]])
         parts = _parts(source[idx[members]], motion_of[idx[members]], c,
                        None if above_ground is None else above_ground[idx[members]])
@@ -1134,6 +1133,13 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
     return still
 
 
+def _runs(keys: np.ndarray) -> list[np.ndarray]:
+    """Positions of ``keys`` (M,) int grouped by key, in key order, each group in
+    ascending position order."""
+    order = np.argsort(keys, kind="stable")
+    return np.split(order, np.flatnonzero(np.diff(keys[order])) + 1)
+
+
 def _per_person(p: np.ndarray, c: ObjectRefinementConfig) -> list[np.ndarray]:
     """The moving points ``p`` (M,3) of one part as its instances (index arrays): one per
     person with ``split_people`` (:func:`_people`), else all in one."""
@@ -1158,26 +1164,23 @@ def _number_unregistered(source: np.ndarray, flow: np.ndarray, dynamic: np.ndarr
     idx = np.flatnonzero(dynamic & ~accepted[instance])
     if idx.size == 0:
         return 0
-    groups = [idx[instance[idx] == own] for own in np.unique(instance[idx]) if own >= 0]
-    loose = idx[instance[idx] < 0]
-    if loose.size:
-        labels = bev_clusters(source[loose], c.cluster_cell_m)
-        order = np.argsort(labels, kind="stable")
-        groups += np.split(loose[order], np.flatnonzero(np.diff(labels[order])) + 1)
-    departure = np.zeros(len(source))
-    departure[idx] = np.linalg.norm(source[idx] + flow[idx] - transform_points(T_ego, source[idx]), axis=1) / interval
+    group = instance[idx]  # the object registered, or (past the objects) a BEV cluster outside every object
+    loose = group < 0
+    if loose.any():
+        group[loose] = len(objects) + bev_clusters(source[idx[loose]], c.cluster_cell_m)
+    departure = np.linalg.norm(source[idx] + flow[idx] - transform_points(T_ego, source[idx]), axis=1) / interval
     first = len(objects)
-    for members in groups:
-        parts = _parts(source[members], np.zeros(len(members), dtype=np.int64), c,
-                       None if above_ground is None else above_ground[members])
+    for members in _runs(group):
+        parts = _parts(source[idx[members]], np.zeros(len(members), dtype=np.int64), c,
+                       None if above_ground is None else above_ground[idx[members]])
         for part in range(int(parts.max()) + 1):
-            mine = members[parts == part]
-            for group in _per_person(source[mine], c):
-                if len(group) < c.min_points:  # a fragment: dynamic, but no object
+            sel = members[parts == part]
+            for person in _per_person(source[idx[sel]], c):
+                if len(person) < c.min_points:  # a fragment: dynamic, but no object
                     continue
-                instance[mine[group]] = len(objects)
-                objects.append({"points": int(len(group)), "accepted": False, "unregistered": True,
-                                "speed_mps": float(np.median(departure[mine[group]]))})
+                instance[idx[sel[person]]] = len(objects)
+                objects.append({"points": int(len(person)), "accepted": False, "unregistered": True,
+                                "speed_mps": float(np.median(departure[sel[person]]))})
     return len(objects) - first
 
 
