@@ -7,7 +7,10 @@ import pytest
 
 from flowslam import geometry
 from flowslam.config import ObjectRefinementConfig
-from flowslam.sceneflow.refinement.objects import _keeps_polish, _on_own_surface, _pick, _planar
+from flowslam.sceneflow.refinement import objects
+from flowslam.sceneflow.refinement.clusters import ScanSurface
+from flowslam.sceneflow.refinement.compiled_icp import IcpTarget
+from flowslam.sceneflow.refinement.objects import _best_icp, _keeps_polish, _on_own_surface, _pick, _planar
 
 
 def _shifted(dx: float) -> np.ndarray:
@@ -35,6 +38,44 @@ def test_an_icp_start_that_slides_the_object_further_must_fit_clearly_better():
     assert _pick([poor, clearly], p, True, c) is clearly
     same = (_shifted(0.82), 0.994, 0.0125, _shifted(1.20))
     assert _pick([first, same], p, True, c) is same
+
+
+def _counting_registrations(monkeypatch) -> list:
+    """Counts the object ICP registrations (the real ones run)."""
+    calls = []
+    register = objects._register
+
+    def counted(*args):
+        calls.append(1)
+        return register(*args)
+
+    monkeypatch.setattr(objects, "_register", counted)
+    return calls
+
+
+def test_a_first_start_that_fits_the_whole_object_skips_the_other_starts(monkeypatch):
+    """A 4 x 1.8 m car side (5 cm grid) that drove 0.8 m along x; the ego stands still.
+    From the network's displacement (0.78 m) its ICP fits every point (fitness 1, within
+    the margin of 1): the second start (1.5 m, the other side of a histogram peak) cannot
+    beat it by the margin, so it is not registered, and the first result is kept. From a
+    first start 1.5 m off the side (beyond the 1 m coarse correspondence distance: nothing
+    to fit) both starts run and the second one wins."""
+    c = ObjectRefinementConfig()
+    x, z = np.meshgrid(np.arange(0.0, 4.0, 0.05), np.arange(0.0, 1.8, 0.05))
+    side = np.stack([x.ravel() + 5.0, np.full(x.size, 3.0), z.ravel() - 1.5], axis=1)
+    side_k = side + [0.8, 0.0, 0.0]
+    target, surface = IcpTarget(side_k), ScanSurface(side_k)
+    calls = _counting_registrations(monkeypatch)
+    T, fitness, _, start = _best_icp(side, target, surface, [_shifted(0.78), _shifted(1.5)], np.eye(4), c,
+                                     prefer_first=True)
+    assert len(calls) == 1 and fitness == pytest.approx(1.0)
+    assert start[0, 3] == 0.78 and abs(T[0, 3] - 0.8) < 0.03
+    calls.clear()
+    off_side = _shifted(0.8)
+    off_side[1, 3] = 1.5
+    T, fitness, _, start = _best_icp(side, target, surface, [off_side, _shifted(0.85)], np.eye(4), c,
+                                     prefer_first=True)
+    assert len(calls) == 2 and start[0, 3] == 0.85 and fitness == pytest.approx(1.0)
 
 
 def test_the_point_to_plane_polish_is_kept_when_it_fits_tighter_within_the_fitness_noise():

@@ -170,14 +170,21 @@ def _best_icp(p: np.ndarray, tgt: IcpTarget, surface: ScanSurface, starts: list[
     the best (:func:`_pick`, ``prefer_first``) by fitness and RMSE against ``surface`` of the
     results that keep the object's centroid on the ground (not :func:`_lifted` from its
     ``T_ego`` landing): (T, fitness, rmse, start). When every result lifts it: (the first
-    start, 0, inf, the first start)."""
+    start, 0, inf, the first start).
+
+    With ``prefer_first``, a first result whose fitness is within :func:`_fitness_margin` of
+    1 is kept without registering the other starts: none can then beat it by that margin,
+    so :func:`_pick` would keep it or another result that lands within ``SAME_SOLUTION_M``
+    of it (the same solution)."""
     results = []
     centroid = p.mean(axis=0)
-    for T_start in starts:
+    for i, T_start in enumerate(starts):
         T = _register(p, tgt, T_start, c)
         if _lifts_centroid(T, centroid, T_ego, c):
             continue
         results.append((T, *_score(p, T, surface, c), T_start))
+        if prefer_first and i == 0 and results[0][1] + _fitness_margin(results[0][1], len(p), c) >= 1.0:
+            return results[0]
     if not results:
         return starts[0], 0.0, float("inf"), starts[0]
     return _pick(results, p, prefer_first and results[0][3] is starts[0], c)
