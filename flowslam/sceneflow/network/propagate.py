@@ -76,7 +76,9 @@ def propagate(
 
     Args:
         points: (N,3) every point of the scan (m).
-        sample_index: (n,) long indices of the sampled points into ``points``.
+        sample_index: (n,) long indices of the sampled points into ``points``, distinct (a
+            repeated index: the compiled path keeps its last row, the torch path one of its
+            rows, which one undefined with several threads; the voxel means count every row).
         values: (n, K) outputs at the sampled points (e.g. flow and dynamic logit).
         voxel_size: finest voxel edge (m); level k uses ``voxel_size * 2**(growth_log2 * k)``.
         max_levels: voxel levels tried before the nearest-neighbour fallback.
