@@ -56,7 +56,7 @@ def _counting_registrations(monkeypatch) -> list:
 def test_a_first_start_that_fits_the_whole_object_skips_the_other_starts(monkeypatch):
     """A 4 x 1.8 m car side (5 cm grid) that drove 0.8 m along x; the ego stands still.
     From the network's displacement (0.78 m) its ICP fits every point (fitness 1, within
-    the margin of 1): the second start (1.5 m, the other side of a histogram peak) cannot
+    the margin of 1): the second start (1.5 m, one of the shifted hypotheses) cannot
     beat it by the margin, so it is not registered, and the first result is kept. From a
     first start 1.5 m off the side (beyond the 1 m coarse correspondence distance: nothing
     to fit) both starts run and the second one wins."""
