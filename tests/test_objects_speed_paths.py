@@ -219,3 +219,33 @@ def test_compiled_normals_equal_the_numpy_closed_forms(radius, k):
     assert 0 < missing.sum() < len(idx) and np.array_equal(np.isnan(got).any(axis=1), missing)
     np.testing.assert_allclose(got[~missing], expected[~missing], atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(got[~missing], axis=1), 1.0, atol=1e-12)
+
+
+def test_ego_landings_asked_once_equal_the_per_object_queries():
+    """The round's cache of ego-landing distances (``_EgoLandings``) gives every object's
+    points the numbers a query of that object alone gives (point and plane distances,
+    bit for bit), asks scan k only for points it has not seen, and the static scores
+    built on it equal :func:`_score` under the ego motion one object at a time."""
+    from flowslam.config import ObjectRefinementConfig
+    from flowslam.sceneflow.refinement import objects
+
+    c = ObjectRefinementConfig()
+    source = _street(4)
+    T_ego = np.eye(4)
+    T_ego[:3, :3] = [[np.cos(0.02), -np.sin(0.02), 0.0], [np.sin(0.02), np.cos(0.02), 0.0], [0.0, 0.0, 1.0]]
+    T_ego[:3, 3] = [0.9, 0.05, 0.01]
+    surface = ScanSurface(transform_points(T_ego, source[::2]) + 0.01, max_range_m=40.0)
+    rng = np.random.default_rng(5)
+    groups = [np.sort(rng.choice(len(source), n, replace=False)) for n in (40, 700, 3000)]
+    cache = objects._EgoLandings(source, T_ego, surface, c)
+    scores = objects._static_scores(groups, cache, c)
+    for idx, score in zip(groups, scores):
+        dist, plane = objects._surface_distances(transform_points(T_ego, source[idx]), surface, c)
+        cached = cache(idx)
+        np.testing.assert_array_equal(cached[0], dist)
+        np.testing.assert_array_equal(cached[1], plane)
+        assert score == objects._score(source[idx], T_ego, surface, c)
+        assert np.isfinite(dist).any() and np.isinf(dist).any()  # the case has both
+    asked = cache.known.copy()
+    cache(groups[1][:100])
+    np.testing.assert_array_equal(cache.known, asked)  # nothing asked twice

@@ -276,11 +276,40 @@ def _lifted(departure: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
 def _plane_distances(x: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> np.ndarray:
     """(M,) distance (m) of each point ``x`` (frame k) to the tangent plane of its nearest
     scan-k point when that is within ``score_distance_m``; inf beyond, NaN without a normal."""
+    return _surface_distances(x, surface, c)[1]
+
+
+def _surface_distances(x: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> tuple:
+    """((M,) distance (m) of each point ``x`` (frame k) to its nearest scan-k point, inf
+    beyond ``score_distance_m``; (M,) :func:`_plane_distances`), from one KD-tree query."""
+    dist, j = surface.tree.query(x, distance_upper_bound=c.score_distance_m)
     plane = np.full(len(x), np.inf)
-    ok, j, normals = _nearest_normals(x, surface, c)
+    ok = np.flatnonzero(np.isfinite(dist))
     if ok.size:
-        plane[ok] = np.abs(np.einsum("ij,ij->i", x[ok] - surface.points[j], normals))
-    return plane
+        normals = surface.normals(j[ok], c.normal_radius_m)
+        plane[ok] = np.abs(np.einsum("ij,ij->i", x[ok] - surface.points[j[ok]], normals))
+    return dist, plane
+
+
+class _EgoLandings:
+    """:func:`_surface_distances` of the ego landings of points of ``source`` (frame k-1,
+    under ``T_ego``), each point asked of scan k's ``surface`` once per round: the static
+    scores, the leftover test, the landing choice and the instance split all ask them."""
+
+    def __init__(self, source: np.ndarray, T_ego: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig):
+        self.source, self.T_ego, self.surface, self.c = source, T_ego, surface, c
+        self.dist = np.empty(len(source))
+        self.plane = np.empty(len(source))
+        self.known = np.zeros(len(source), dtype=bool)
+
+    def __call__(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(point distance, plane distance) (m) of the ego landings of ``source[idx]``."""
+        todo = np.unique(idx[~self.known[idx]])
+        if todo.size:
+            x = transform_points(self.T_ego, self.source[todo])
+            self.dist[todo], self.plane[todo] = _surface_distances(x, self.surface, self.c)
+            self.known[todo] = True
+        return self.dist[idx], self.plane[idx]
 
 
 def _nearest_normals(x: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> tuple:
@@ -309,13 +338,14 @@ def _score(src: np.ndarray, T: np.ndarray, surface: ScanSurface, c: ObjectRefine
     return _fit(_plane_distances(transform_points(T, src), surface, c), c)
 
 
-def _static_scores(source: np.ndarray, objects: list[np.ndarray], T_ego: np.ndarray, surface: ScanSurface,
+def _static_scores(objects: list[np.ndarray], ego_landings: _EgoLandings,
                    c: ObjectRefinementConfig) -> list[tuple[float, float]]:
-    """:func:`_score` of every object (index arrays into ``source``) under the ego motion,
-    from one query of all their points (per point the same numbers as one by one)."""
+    """:func:`_score` of every object (index arrays into the source scan) under the ego
+    motion, from ``ego_landings`` (one query of all their points: per point the same
+    numbers as one by one)."""
     if not objects:
         return []
-    plane = _plane_distances(transform_points(T_ego, source[np.concatenate(objects)]), surface, c)
+    plane = ego_landings(np.concatenate(objects))[1]
     return [_fit(part, c) for part in np.split(plane, np.cumsum([len(o) for o in objects])[:-1])]
 
 
@@ -584,8 +614,9 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     grown = []  # (object, its motion, its dynamic points) to grow
     motions = {}  # object -> its own motion
     motion_of = np.full(len(source), -1, dtype=np.int64)  # index of the object motion a point took
+    ego_landings = _EgoLandings(source, T_ego, surface, c)  # shared by this round's tests of ego landings
     scene = (source, flow, movers, seen, T_ego, interval, surface, c, range_image, guesses, above_ground)
-    for idx, record in _registered(clusters, *scene):
+    for idx, record in _registered(clusters, *scene, ego_landings=ego_landings):
         own = instance[idx] = len(objects)
         motion = record.pop("motion", None)
         if motion is not None:
@@ -617,7 +648,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
                 objects[own]["embedded"] = True
     still = _split_instances(source, flow, dynamic & settled, instance, motion_of, objects, T_ego, interval, surface, c,
                              range_image if c.split_visible else None, seen,
-                             above_ground if c.split_above_ground else None)
+                             above_ground if c.split_above_ground else None, ego_landings)
     flow[still], dynamic[still] = rigid_flow(T_ego, source[still]), False
     # the rest of the network's dynamic points: static if the ego motion lands them on a surface
     # of scan k; those outside the candidates' range (in no object) ask every point of scan k,
@@ -818,19 +849,24 @@ def _embedded(source: np.ndarray, solid: np.ndarray, solid_points: np.ndarray, m
 
 def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray, movers: np.ndarray,
                 seen: np.ndarray, T_ego: np.ndarray, interval: float, surface: ScanSurface,
-                c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None):
+                c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None,
+                ego_landings: _EgoLandings | None = None):
     """Yields each cluster (index array into ``source``) with its :func:`_refine_object`
-    record (``solid``: (N,) points clear of the ground, or None). A cluster wider than
+    record (``solid``: (N,) points clear of the ground, or None; ``ego_landings``: the
+    round's, or None for new ones). A cluster wider than
     ``split_extent_m`` is also registered as its :func:`_components`, and those replace it
     when their registrations explain at least ``split_gain`` of its points more than its
     own (:func:`_explained`): in a crowd or a
     queue one cluster holds several movers, and one rigid motion cannot register them
     all; but a car whose sparse candidate points fall into several components is better
     registered whole (its pieces slide along their own faces, and explain about as much)."""
+    ego_landings = ego_landings or _EgoLandings(source, T_ego, surface, c)
+
     def refine(group):
-        for idx, static_score in zip(group, _static_scores(source, group, T_ego, surface, c)):
+        for idx, static_score in zip(group, _static_scores(group, ego_landings, c)):
             yield idx, _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
-                                      static_score, c, range_image, guesses, None if solid is None else solid[idx])
+                                      static_score, c, range_image, guesses, None if solid is None else solid[idx],
+                                      ego_landings(idx))
 
     for idx, record in refine(clusters):
         parts = _components(source, idx, c)
@@ -933,13 +969,16 @@ def _target_box(surface: ScanSurface, guess: np.ndarray, ego: np.ndarray, reach:
 
 def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.ndarray, T_ego: np.ndarray,
                    interval: float, surface: ScanSurface, static_score: tuple[float, float],
-                   c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None) -> dict:
+                   c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None,
+                   ego_surface: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
     """Register one object (points ``p``, frame k-1; their flow; its geometric movers ``sub``
     and seen-through points; its ``static_score``, :func:`_score` under ``T_ego``) to scan k,
     ``interval`` (s) after. Returns its record; an accepted one also holds ``result``:
-    (landing (M,3) of each point in frame k, moving (M,) bool)."""
+    (landing (M,3) of each point in frame k, moving (M,) bool). ``ego_surface``: the
+    :func:`_surface_distances` of its ego landings, when known."""
     static_fitness, static_rmse = static_score
     ego = transform_points(T_ego, p)  # where the points land if they are static
+    ego_dist, ego_plane = _surface_distances(ego, surface, c) if ego_surface is None else ego_surface
     record = {"points": int(len(p)), "static_fitness": static_fitness, "static_rmse_m": static_rmse,
               "accepted": False}
     fits = (static_fitness >= c.static_fitness_accept and static_rmse <= c.static_accept_rmse_m
@@ -984,7 +1023,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
                 record["accepted"] = True
                 motions.append(_polished(moving_part, box, Tm, fm, rm, surface, T_ego, c))
     if motions and c.leftover_motion:
-        leftover = _leftover_motion(p, flow, ego, motions, tgt, surface, T_ego, c)
+        leftover = _leftover_motion(p, flow, ego, ego_plane, motions, tgt, surface, T_ego, c)
         if leftover is not None:
             motions.append(leftover)
             record["leftover_motion"] = True
@@ -997,7 +1036,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     if record["accepted"]:
         if motions:
             record["motion"] = motions[0]
-        landing, which = _choose_landing(p, ego, motions, surface, c, solid)
+        landing, which = _choose_landing(p, ego, motions, surface, c, solid, ego_dist)
         moving = _moving(landing, ego, interval, c)
         record["speed_mps"] = 0.0  # a moving object's: :func:`_split_instances`, from its final flow
         record["result"] = (np.where(moving[:, None], landing, ego), moving, which)
@@ -1059,16 +1098,18 @@ def _observable(landing: np.ndarray, departure: np.ndarray, surface: ScanSurface
     return np.count_nonzero(cos[known] >= DISCRIMINATING_COS) >= c.min_discriminating_share * np.count_nonzero(known)
 
 
-def _leftover_motion(p: np.ndarray, flow: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], tgt: IcpTarget,
-                     surface: ScanSurface, T_ego: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray | None:
+def _leftover_motion(p: np.ndarray, flow: np.ndarray, ego: np.ndarray, ego_plane: np.ndarray, motions: list[np.ndarray],
+                     tgt: IcpTarget, surface: ScanSurface, T_ego: np.ndarray,
+                     c: ObjectRefinementConfig) -> np.ndarray | None:
     """A further rigid motion for the points of an object (``p``, frame k-1; ``flow`` their
-    input flow, ``ego`` their ego landings; ``tgt``: its target box) that neither the ego
+    input flow, ``ego`` their ego landings, ``ego_plane`` the landings'
+    :func:`_plane_distances`; ``tgt``: its target box) that neither the ego
     motion nor any of its ``motions`` lands on scan k's surface (within ``score_plane_m``), when they are at least
     ``min_points`` and ``leftover_share`` of it: registered on their own from their input
     flow's median displacement, kept when it fits (``min_fitness``, ``max_rmse_m``) and the
     ego motion does not explain them as well. Two vehicles side by side that move apart
     form one cluster, and one motion registers only one of them."""
-    on = _plane_distances(ego, surface, c) < c.score_plane_m
+    on = ego_plane < c.score_plane_m
     for M in motions:
         on |= _plane_distances(transform_points(M, p), surface, c) < c.score_plane_m
     left = ~on
@@ -1087,7 +1128,8 @@ def _leftover_motion(p: np.ndarray, flow: np.ndarray, ego: np.ndarray, motions: 
 def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, instance: np.ndarray,
                      motion_of: np.ndarray, objects: list[dict], T_ego: np.ndarray, interval: float,
                      surface: ScanSurface, c: ObjectRefinementConfig, range_image=None,
-                     seen: np.ndarray | None = None, above_ground: np.ndarray | None = None) -> np.ndarray:
+                     seen: np.ndarray | None = None, above_ground: np.ndarray | None = None,
+                     ego_landings: _EgoLandings | None = None) -> np.ndarray:
     """Split every object's ``moving`` points into instances (:func:`_parts`: by the motion
     they took, ``motion_of``, then by ``instance_cell_m`` components, and with ``above_ground``
     (scan k-1's points clear of the ground) apart where only their low points touch); part 0 keeps the
@@ -1102,13 +1144,15 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
     landings only (``split_visible``). A moving part holding several people (``split_people``,
     :func:`_people`) becomes one instance per person. Speeds (m/s) are the parts' median
     departure from the ego landing (``flow`` against ``T_ego``'s) over ``interval`` s
-    (0 for an object whose part 0 stays static)."""
+    (0 for an object whose part 0 stays static). ``ego_landings``: the round's, or None for
+    new ones."""
     still = np.zeros(len(source), dtype=bool)
     idx = np.flatnonzero(moving & (instance >= 0))
     if idx.size == 0:
         return still
     ego = transform_points(T_ego, source[idx])
     departure = np.linalg.norm(source[idx] + flow[idx] - ego, axis=1) / interval
+    ego_landings = ego_landings or _EgoLandings(source, T_ego, surface, c)
     for members in _runs(instance[idx]):
         own = int(instance[idx[members[0]]])
         parts = _parts(source[idx[members]], motion_of[idx[members]], c,
@@ -1118,7 +1162,7 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
             sel = members[parts == part]
             mine = idx[sel]
             landing = source[mine] + flow[mine]
-            ego_plane, own_plane = _plane_distances(ego[sel], surface, c), _plane_distances(landing, surface, c)
+            ego_plane, own_plane = ego_landings(mine)[1], _plane_distances(landing, surface, c)
             if range_image is not None and np.count_nonzero(seen[mine]) < c.min_seen_through:
                 # ego landings hidden behind something other than the part's own new surface
                 # count for neither side: scan k cannot tell where those points went
@@ -1379,7 +1423,8 @@ def _part_majority(p: np.ndarray, best: np.ndarray, dist: np.ndarray, solid: np.
 
 
 def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], surface: ScanSurface,
-                    c: ObjectRefinementConfig, solid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    c: ObjectRefinementConfig, solid: np.ndarray | None = None,
+                    ego_dist: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(M,3) landing of each point of ``p`` (frame k) and (M,) the index of the motion it
     took (-1: the ego motion): the landing of the object motion that
     puts it nearest to scan k's surface (the first when none lands within
@@ -1395,7 +1440,8 @@ def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], s
     ``solid`` (M,) bool (points clear of scan k-1's local ground), a solid point whose ego
     landing lies on the object's own new surface (:func:`_on_own_surface`) keeps its
     motion: a vehicle that slid along itself puts its rear points' ego landings onto its
-    own side, which explains them no better than its motion."""
+    own side, which explains them no better than its motion. ``ego_dist``: the ego
+    landings' distances to scan k (:func:`_surface_distances`), when known."""
     if not motions:
         return ego, np.full(len(p), -1, dtype=np.int64)
     landings = np.stack([transform_points(M, p) for M in motions])
@@ -1408,7 +1454,7 @@ def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], s
     if len(motions) > 1 and solid is not None and c.coherent_parts:
         best = _part_majority(p, best, dist, solid, c)
     rows = np.arange(len(p))
-    d_ego = surface.tree.query(ego, distance_upper_bound=c.score_distance_m)[0]
+    d_ego = surface.tree.query(ego, distance_upper_bound=c.score_distance_m)[0] if ego_dist is None else ego_dist
     nearest = dist[best, rows]
     take_ego = ((d_ego < nearest) & ~(nearest <= c.score_plane_m)) | no_motion
     own = landings[best, rows]
