@@ -222,10 +222,12 @@ def test_compiled_normals_equal_the_numpy_closed_forms(radius, k):
 
 
 def test_ego_landings_asked_once_equal_the_per_object_queries():
-    """The round's cache of ego-landing distances (``_EgoLandings``) gives every object's
-    points the numbers a query of that object alone gives (point and plane distances,
-    bit for bit), asks scan k only for points it has not seen, and the static scores
-    built on it equal :func:`_score` under the ego motion one object at a time."""
+    """The round's cache of ego-landing distances (``_EgoLandings``), filled by one query of
+    all the objects' points as ``_registered`` does, gives every object's points the
+    numbers a query of that object alone gives (point and plane distances, bit for bit),
+    asks scan k only for points it has not seen, and the static scores built on it
+    (:func:`_fit` of its plane distances) equal :func:`_score` under the ego motion one
+    object at a time."""
     from flowslam.config import ObjectRefinementConfig
     from flowslam.sceneflow.refinement import objects
 
@@ -238,13 +240,13 @@ def test_ego_landings_asked_once_equal_the_per_object_queries():
     rng = np.random.default_rng(5)
     groups = [np.sort(rng.choice(len(source), n, replace=False)) for n in (40, 700, 3000)]
     cache = objects._EgoLandings(source, T_ego, surface, c)
-    scores = objects._static_scores(groups, cache, c)
-    for idx, score in zip(groups, scores):
+    cache(np.concatenate(groups))
+    for idx in groups:
         dist, plane = objects._surface_distances(transform_points(T_ego, source[idx]), surface, c)
         cached = cache(idx)
         np.testing.assert_array_equal(cached[0], dist)
         np.testing.assert_array_equal(cached[1], plane)
-        assert score == objects._score(source[idx], T_ego, surface, c)
+        assert objects._fit(cached[1], c) == objects._score(source[idx], T_ego, surface, c)
         assert np.isfinite(dist).any() and np.isinf(dist).any()  # the case has both
     asked = cache.known.copy()
     cache(groups[1][:100])

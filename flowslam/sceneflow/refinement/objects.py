@@ -282,12 +282,10 @@ def _plane_distances(x: np.ndarray, surface: ScanSurface, c: ObjectRefinementCon
 def _surface_distances(x: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> tuple:
     """((M,) distance (m) of each point ``x`` (frame k) to its nearest scan-k point, inf
     beyond ``score_distance_m``; (M,) :func:`_plane_distances`), from one KD-tree query."""
-    dist, j = surface.tree.query(x, distance_upper_bound=c.score_distance_m)
+    dist, ok, j, normals = _nearest_normals(x, surface, c)
     plane = np.full(len(x), np.inf)
-    ok = np.flatnonzero(np.isfinite(dist))
     if ok.size:
-        normals = surface.normals(j[ok], c.normal_radius_m)
-        plane[ok] = np.abs(np.einsum("ij,ij->i", x[ok] - surface.points[j[ok]], normals))
+        plane[ok] = np.abs(np.einsum("ij,ij->i", x[ok] - surface.points[j], normals))
     return dist, plane
 
 
@@ -313,13 +311,14 @@ class _EgoLandings:
 
 
 def _nearest_normals(x: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> tuple:
-    """(indices of the points ``x`` (frame k) with a scan-k point within ``score_distance_m``,
-    that point's index in ``surface``, its tangent-plane normal (NaN: none)) for those."""
+    """((M,) distance (m) of each point ``x`` (frame k) to its nearest scan-k point, inf
+    beyond ``score_distance_m``; the indices of the points with one; that point's index in
+    ``surface``, its tangent-plane normal (NaN: none)) for those."""
     dist, j = surface.tree.query(x, distance_upper_bound=c.score_distance_m)
     ok = np.flatnonzero(np.isfinite(dist))
     if ok.size == 0:
-        return ok, ok, np.zeros((0, 3))
-    return ok, j[ok], surface.normals(j[ok], c.normal_radius_m)
+        return dist, ok, ok, np.zeros((0, 3))
+    return dist, ok, j[ok], surface.normals(j[ok], c.normal_radius_m)
 
 
 def _fit(plane: np.ndarray, c: ObjectRefinementConfig) -> tuple[float, float]:
@@ -336,17 +335,6 @@ def _score(src: np.ndarray, T: np.ndarray, surface: ScanSurface, c: ObjectRefine
     :func:`_plane_distances`). Plane, not point, distances: a static surface seen by other
     rings in scan k is still a surface."""
     return _fit(_plane_distances(transform_points(T, src), surface, c), c)
-
-
-def _static_scores(objects: list[np.ndarray], ego_landings: _EgoLandings,
-                   c: ObjectRefinementConfig) -> list[tuple[float, float]]:
-    """:func:`_score` of every object (index arrays into the source scan) under the ego
-    motion, from ``ego_landings`` (one query of all their points: per point the same
-    numbers as one by one)."""
-    if not objects:
-        return []
-    plane = ego_landings(np.concatenate(objects))[1]
-    return [_fit(part, c) for part in np.split(plane, np.cumsum([len(o) for o in objects])[:-1])]
 
 
 def _icp_subset(n: int, c: ObjectRefinementConfig) -> np.ndarray:
@@ -648,7 +636,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
                 objects[own]["embedded"] = True
     still = _split_instances(source, flow, dynamic & settled, instance, motion_of, objects, T_ego, interval, surface, c,
                              range_image if c.split_visible else None, seen,
-                             above_ground if c.split_above_ground else None, ego_landings)
+                             above_ground if c.split_above_ground else None, ego_landings=ego_landings)
     flow[still], dynamic[still] = rigid_flow(T_ego, source[still]), False
     # the rest of the network's dynamic points: static if the ego motion lands them on a surface
     # of scan k; those outside the candidates' range (in no object) ask every point of scan k,
@@ -849,24 +837,23 @@ def _embedded(source: np.ndarray, solid: np.ndarray, solid_points: np.ndarray, m
 
 def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray, movers: np.ndarray,
                 seen: np.ndarray, T_ego: np.ndarray, interval: float, surface: ScanSurface,
-                c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None,
-                ego_landings: _EgoLandings | None = None):
+                c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None, *,
+                ego_landings: _EgoLandings):
     """Yields each cluster (index array into ``source``) with its :func:`_refine_object`
     record (``solid``: (N,) points clear of the ground, or None; ``ego_landings``: the
-    round's, or None for new ones). A cluster wider than
+    round's). A cluster wider than
     ``split_extent_m`` is also registered as its :func:`_components`, and those replace it
     when their registrations explain at least ``split_gain`` of its points more than its
     own (:func:`_explained`): in a crowd or a
     queue one cluster holds several movers, and one rigid motion cannot register them
     all; but a car whose sparse candidate points fall into several components is better
     registered whole (its pieces slide along their own faces, and explain about as much)."""
-    ego_landings = ego_landings or _EgoLandings(source, T_ego, surface, c)
-
     def refine(group):
-        for idx, static_score in zip(group, _static_scores(group, ego_landings, c)):
+        if group:
+            ego_landings(np.concatenate(group))  # the group's ego landings in one query
+        for idx in group:
             yield idx, _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
-                                      static_score, c, range_image, guesses, None if solid is None else solid[idx],
-                                      ego_landings(idx))
+                                      ego_landings(idx), c, range_image, guesses, None if solid is None else solid[idx])
 
     for idx, record in refine(clusters):
         parts = _components(source, idx, c)
@@ -968,17 +955,17 @@ def _target_box(surface: ScanSurface, guess: np.ndarray, ego: np.ndarray, reach:
 
 
 def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.ndarray, T_ego: np.ndarray,
-                   interval: float, surface: ScanSurface, static_score: tuple[float, float],
-                   c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None,
-                   ego_surface: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+                   interval: float, surface: ScanSurface, ego_surface: tuple[np.ndarray, np.ndarray],
+                   c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None) -> dict:
     """Register one object (points ``p``, frame k-1; their flow; its geometric movers ``sub``
-    and seen-through points; its ``static_score``, :func:`_score` under ``T_ego``) to scan k,
+    and seen-through points; ``ego_surface``: the :func:`_surface_distances` of their
+    landings under ``T_ego``, whose :func:`_fit` is its static score) to scan k,
     ``interval`` (s) after. Returns its record; an accepted one also holds ``result``:
-    (landing (M,3) of each point in frame k, moving (M,) bool). ``ego_surface``: the
-    :func:`_surface_distances` of its ego landings, when known."""
-    static_fitness, static_rmse = static_score
+    (landing (M,3) of each point in frame k, moving (M,) bool)."""
     ego = transform_points(T_ego, p)  # where the points land if they are static
-    ego_dist, ego_plane = _surface_distances(ego, surface, c) if ego_surface is None else ego_surface
+    ego_dist, ego_plane = ego_surface
+    static_score = _fit(ego_plane, c)
+    static_fitness, static_rmse = static_score
     record = {"points": int(len(p)), "static_fitness": static_fitness, "static_rmse_m": static_rmse,
               "accepted": False}
     fits = (static_fitness >= c.static_fitness_accept and static_rmse <= c.static_accept_rmse_m
@@ -1023,7 +1010,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
                 record["accepted"] = True
                 motions.append(_polished(moving_part, box, Tm, fm, rm, surface, T_ego, c))
     if motions and c.leftover_motion:
-        leftover = _leftover_motion(p, flow, ego, ego_plane, motions, tgt, surface, T_ego, c)
+        leftover = _leftover_motion(p, flow, ego_plane, motions, tgt, surface, T_ego, c)
         if leftover is not None:
             motions.append(leftover)
             record["leftover_motion"] = True
@@ -1088,7 +1075,7 @@ def _observable(landing: np.ndarray, departure: np.ndarray, surface: ScanSurface
     length = float(np.linalg.norm(departure))
     if length == 0.0:
         return False
-    ok, _, normals = _nearest_normals(landing, surface, c)
+    _, ok, _, normals = _nearest_normals(landing, surface, c)
     if ok.size == 0:
         return False
     cos = np.abs(normals @ (departure / length))
@@ -1098,12 +1085,12 @@ def _observable(landing: np.ndarray, departure: np.ndarray, surface: ScanSurface
     return np.count_nonzero(cos[known] >= DISCRIMINATING_COS) >= c.min_discriminating_share * np.count_nonzero(known)
 
 
-def _leftover_motion(p: np.ndarray, flow: np.ndarray, ego: np.ndarray, ego_plane: np.ndarray, motions: list[np.ndarray],
+def _leftover_motion(p: np.ndarray, flow: np.ndarray, ego_plane: np.ndarray, motions: list[np.ndarray],
                      tgt: IcpTarget, surface: ScanSurface, T_ego: np.ndarray,
                      c: ObjectRefinementConfig) -> np.ndarray | None:
     """A further rigid motion for the points of an object (``p``, frame k-1; ``flow`` their
-    input flow, ``ego`` their ego landings, ``ego_plane`` the landings'
-    :func:`_plane_distances`; ``tgt``: its target box) that neither the ego
+    input flow, ``ego_plane`` the :func:`_plane_distances` of their ego landings; ``tgt``:
+    its target box) that neither the ego
     motion nor any of its ``motions`` lands on scan k's surface (within ``score_plane_m``), when they are at least
     ``min_points`` and ``leftover_share`` of it: registered on their own from their input
     flow's median displacement, kept when it fits (``min_fitness``, ``max_rmse_m``) and the
@@ -1128,8 +1115,8 @@ def _leftover_motion(p: np.ndarray, flow: np.ndarray, ego: np.ndarray, ego_plane
 def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, instance: np.ndarray,
                      motion_of: np.ndarray, objects: list[dict], T_ego: np.ndarray, interval: float,
                      surface: ScanSurface, c: ObjectRefinementConfig, range_image=None,
-                     seen: np.ndarray | None = None, above_ground: np.ndarray | None = None,
-                     ego_landings: _EgoLandings | None = None) -> np.ndarray:
+                     seen: np.ndarray | None = None, above_ground: np.ndarray | None = None, *,
+                     ego_landings: _EgoLandings) -> np.ndarray:
     """Split every object's ``moving`` points into instances (:func:`_parts`: by the motion
     they took, ``motion_of``, then by ``instance_cell_m`` components, and with ``above_ground``
     (scan k-1's points clear of the ground) apart where only their low points touch); part 0 keeps the
@@ -1144,15 +1131,13 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
     landings only (``split_visible``). A moving part holding several people (``split_people``,
     :func:`_people`) becomes one instance per person. Speeds (m/s) are the parts' median
     departure from the ego landing (``flow`` against ``T_ego``'s) over ``interval`` s
-    (0 for an object whose part 0 stays static). ``ego_landings``: the round's, or None for
-    new ones."""
+    (0 for an object whose part 0 stays static). ``ego_landings``: the round's."""
     still = np.zeros(len(source), dtype=bool)
     idx = np.flatnonzero(moving & (instance >= 0))
     if idx.size == 0:
         return still
     ego = transform_points(T_ego, source[idx])
     departure = np.linalg.norm(source[idx] + flow[idx] - ego, axis=1) / interval
-    ego_landings = ego_landings or _EgoLandings(source, T_ego, surface, c)
     for members in _runs(instance[idx]):
         own = int(instance[idx[members[0]]])
         parts = _parts(source[idx[members]], motion_of[idx[members]], c,
