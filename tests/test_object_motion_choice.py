@@ -136,3 +136,32 @@ def test_an_ego_landing_on_the_objects_own_new_surface_is_not_a_static_explanati
     assert _on_own_surface(ego, landing, kept, solid, 0.3).tolist() == [False, False, True, False]
     solid[2] = False
     assert not _on_own_surface(ego, landing, kept, solid, 0.3).any()
+
+
+def test_a_whole_body_motion_is_needed_only_where_the_ego_and_the_movers_motions_leave_points_off():
+    """A near car's back face (x = 2 m, 5 cm grid) merged into one object with the wall
+    beside it (y = 3 m, along x); the car drives 1 m along x, the ego stands still. The
+    ego motion lands the wall on scan k, not the face. A whole-body motion of 0.95 m
+    (what an ICP of the merged object may find) lands the face too, so against the ego
+    motion alone it adds fit; with the movers' own motion (1 m) beside the ego motion, it
+    lands no point more and is not needed (:func:`objects._adds_fit`). With
+    ``whole_motion_slow_share`` such a motion is dropped when it is also slow beside the
+    movers' own (:func:`objects._slow_and_needless`)."""
+    c = ObjectRefinementConfig()
+    y, z = np.meshgrid(np.arange(0.0, 1.8, 0.05), np.arange(-1.5, 0.0, 0.05))
+    face = np.stack([np.full(y.size, 2.0), y.ravel(), z.ravel()], axis=1)
+    x, z = np.meshgrid(np.arange(-2.0, 8.0, 0.05), np.arange(-1.5, 0.5, 0.05))
+    wall = np.stack([x.ravel(), np.full(x.size, 3.0), z.ravel()], axis=1)
+    p = np.concatenate([wall[(wall[:, 0] > 0) & (wall[:, 0] < 5)], face])
+    surface = ScanSurface(np.concatenate([wall, face + [1.0, 0.0, 0.0]]))
+    ego_plane = objects._plane_distances(p, surface, c)
+    assert 0.4 < objects._fit(ego_plane, c)[0] < 0.9
+    whole, movers = _shifted(0.95), _shifted(1.0)
+    assert objects._adds_fit(p, ego_plane, whole, [], surface, c)
+    assert not objects._adds_fit(p, ego_plane, whole, [movers], surface, c)
+    # dropped only when also slow beside the movers' motion: a 0.2 m shift (the wall slides
+    # along itself, the face stays off) is, 0.95 m is kept; the option's default is off
+    shift = ObjectRefinementConfig(whole_motion_slow_share=0.25)
+    assert objects._slow_and_needless(p, p, ego_plane, _shifted(0.2), [movers], surface, shift)
+    assert not objects._slow_and_needless(p, p, ego_plane, whole, [movers], surface, shift)
+    assert not objects._slow_and_needless(p, p, ego_plane, _shifted(0.2), [movers], surface, c)

@@ -391,6 +391,15 @@ class ObjectRefinementConfig(StrictModel):
     their motion is kept when it fits (``min_fitness``, ``max_rmse_m``) and the ego motion
     does not explain them as well. Tuning `rush-hour` 364 EPE3D 0.0405 -> 0.0359 with the two
     options above; the AV2 pair unchanged by it."""
+    whole_motion_slow_share: float = Field(0.0, ge=0)
+    """An object whose movers got a motion of their own drops its whole-body motion when
+    that moves it (mean horizontal departure from the ego landings) by at most this share of
+    the slowest of its movers' motions and lands no more of its points on scan k's surface
+    (within ``score_plane_m``) than the ego motion and the movers' motions together, by the
+    fitness margin (``static_preference``, ``static_preference_sigmas``). A near car merged
+    with the static points around it: an ICP of the whole cluster may shift it by a few
+    centimetres towards the car's motion, fit it slightly better than the ego motion, and
+    move its static points. 0: off."""
     grow_wide_margin: float = Field(0.2, ge=0)
     """A component wider than ``grow_max_extent_m`` does not join a moving object, but its
     ``instance_cell_m`` parts (each at most that wide) that hold the object's dynamic points

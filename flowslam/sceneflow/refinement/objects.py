@@ -996,6 +996,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         record["accepted"] = True
         if not _ego_explains(static_score, fitness, rmse, min(len(p), c.max_icp_points), c):
             motions.append(_polished(q, box, T, fitness, rmse, surface, T_ego, c))
+    whole = motions[:1]  # the object's whole-body motion, when it has one
     if mover_starts:
         for part, starts in _mover_parts(p[sub], mover_starts, T_ego, c):
             moving_part = part[_icp_subset(len(part), c)]
@@ -1009,6 +1010,9 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
             if fm >= c.min_fitness and rm <= c.max_rmse_m and fm > joint_on_movers + c.static_preference:
                 record["accepted"] = True
                 motions.append(_polished(moving_part, box, Tm, fm, rm, surface, T_ego, c))
+    if whole and len(motions) > 1 and _slow_and_needless(p, ego, ego_plane, whole[0], motions[1:], surface, c):
+        motions = motions[1:]
+        record["whole_motion_dropped"] = True
     if motions and c.leftover_motion:
         leftover = _leftover_motion(p, flow, ego_plane, motions, tgt, surface, T_ego, c)
         if leftover is not None:
@@ -1028,6 +1032,34 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         record["speed_mps"] = 0.0  # a moving object's: :func:`_split_instances`, from its final flow
         record["result"] = (np.where(moving[:, None], landing, ego), moving, which)
     return record
+
+
+def _slow_and_needless(p: np.ndarray, ego: np.ndarray, ego_plane: np.ndarray, whole: np.ndarray,
+                       movers: list[np.ndarray], surface: ScanSurface, c: ObjectRefinementConfig) -> bool:
+    """``whole_motion_slow_share``: whether an object's whole-body motion ``whole`` moves
+    its points ``p`` (frame k-1; ``ego`` their ego landings, frame k) by at most that share
+    of the slowest of its ``movers``' motions (mean horizontal departure) and lands no more
+    of them on scan k's surface than the ego motion and those motions (:func:`_adds_fit`)."""
+    if c.whole_motion_slow_share <= 0:
+        return False
+    speed = [float(np.linalg.norm((transform_points(M, p) - ego)[:, :2].mean(axis=0))) for M in [whole] + movers]
+    if speed[0] > c.whole_motion_slow_share * min(speed[1:]):
+        return False
+    return not _adds_fit(p, ego_plane, whole, movers, surface, c)
+
+
+def _adds_fit(p: np.ndarray, ego_plane: np.ndarray, motion: np.ndarray, others: list[np.ndarray],
+              surface: ScanSurface, c: ObjectRefinementConfig) -> bool:
+    """Whether ``motion`` lands more of an object's points ``p`` (frame k-1) within
+    ``score_plane_m`` of scan k's surface than the ego motion (``ego_plane``: its landings'
+    :func:`_plane_distances`) and the ``others`` motions together (each point counted at
+    its nearest landing), by more than :func:`_fitness_margin`."""
+    base = ego_plane
+    for M in others:
+        base = np.fmin(base, _plane_distances(transform_points(M, p), surface, c))
+    fitness = _fit(base, c)[0]
+    more = _fit(np.fmin(base, _plane_distances(transform_points(motion, p), surface, c)), c)[0]
+    return more > fitness + _fitness_margin(fitness, len(p), c)
 
 
 SEEN_EVIDENCE_SHARE = 0.02
