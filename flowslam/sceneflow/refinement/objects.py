@@ -1042,8 +1042,8 @@ def _slow_and_needless(p: np.ndarray, ego: np.ndarray, ego_plane: np.ndarray, wh
     of them on scan k's surface than the ego motion and those motions (:func:`_adds_fit`)."""
     if c.whole_motion_slow_share <= 0:
         return False
-    speed = [float(np.linalg.norm((transform_points(M, p) - ego)[:, :2].mean(axis=0))) for M in [whole] + movers]
-    if speed[0] > c.whole_motion_slow_share * min(speed[1:]):
+    departure = [float(np.linalg.norm((transform_points(M, p) - ego)[:, :2].mean(axis=0))) for M in [whole] + movers]
+    if departure[0] > c.whole_motion_slow_share * min(departure[1:]):
         return False
     return not _adds_fit(p, ego_plane, whole, movers, surface, c)
 
