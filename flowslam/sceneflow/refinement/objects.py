@@ -1052,14 +1052,24 @@ def _adds_fit(p: np.ndarray, ego_plane: np.ndarray, motion: np.ndarray, others: 
               surface: ScanSurface, c: ObjectRefinementConfig) -> bool:
     """Whether ``motion`` lands more of an object's points ``p`` (frame k-1) within
     ``score_plane_m`` of scan k's surface than the ego motion (``ego_plane``: its landings'
-    :func:`_plane_distances`) and the ``others`` motions together (each point counted at
-    its nearest landing), by more than :func:`_fitness_margin`."""
-    base = ego_plane
-    for M in others:
-        base = np.fmin(base, _plane_distances(transform_points(M, p), surface, c))
-    fitness = _fit(base, c)[0]
-    more = _fit(np.fmin(base, _plane_distances(transform_points(motion, p), surface, c)), c)[0]
+    :func:`_plane_distances`) and the ``others`` motions together (:func:`_landed`: a
+    point counts when any of them lands it), by more than :func:`_fitness_margin`."""
+    base = _landed(p, ego_plane, others, surface, c)
+    fitness = np.count_nonzero(base) / len(p)
+    by_motion = _plane_distances(transform_points(motion, p), surface, c) < c.score_plane_m
+    more = np.count_nonzero(base | by_motion) / len(p)
     return more > fitness + _fitness_margin(fitness, len(p), c)
+
+
+def _landed(p: np.ndarray, ego_plane: np.ndarray, motions: list[np.ndarray], surface: ScanSurface,
+            c: ObjectRefinementConfig) -> np.ndarray:
+    """(M,) bool: the points ``p`` (frame k-1) that the ego motion (``ego_plane``: the
+    :func:`_plane_distances` of their ego landings) or one of ``motions`` lands within
+    ``score_plane_m`` of scan k's surface."""
+    on = ego_plane < c.score_plane_m
+    for M in motions:
+        on |= _plane_distances(transform_points(M, p), surface, c) < c.score_plane_m
+    return on
 
 
 SEEN_EVIDENCE_SHARE = 0.02
@@ -1128,10 +1138,7 @@ def _leftover_motion(p: np.ndarray, flow: np.ndarray, ego_plane: np.ndarray, mot
     flow's median displacement, kept when it fits (``min_fitness``, ``max_rmse_m``) and the
     ego motion does not explain them as well. Two vehicles side by side that move apart
     form one cluster, and one motion registers only one of them."""
-    on = ego_plane < c.score_plane_m
-    for M in motions:
-        on |= _plane_distances(transform_points(M, p), surface, c) < c.score_plane_m
-    left = ~on
+    left = ~_landed(p, ego_plane, motions, surface, c)
     if left.sum() < max(c.min_points, c.leftover_share * len(p)):
         return None
     r = p[left][_icp_subset(int(left.sum()), c)]
