@@ -15,6 +15,7 @@ from typing import Callable
 
 from flowslam.frame import Dataset, Frame
 from flowslam.interfaces import Backend, Frontend, FrontendOutput, LoopCloser
+from flowslam.signals import stop_behind
 from flowslam.slam import RunResult, Slam
 
 __all__ = ["RunResult", "drive", "run_pipeline"]
@@ -42,7 +43,7 @@ def drive(
                     upcoming(ahead)
             slam.process(frame, started=start)
         except (Exception, KeyboardInterrupt) as error:  # keep what is done, report after writing
-            slam.stopped(error, index)
+            slam.stopped(stop_behind(error), index)  # a signal that surfaced as another error is the signal
             break
         if on_frame is not None:
             on_frame(k, time.perf_counter() - start)

@@ -21,7 +21,7 @@ import threading
 from contextlib import contextmanager
 from typing import Iterator
 
-__all__ = ["Terminated", "terminate_as_interrupt", "deferred_signals", "describe_stop", "exit_code"]
+__all__ = ["Terminated", "terminate_as_interrupt", "deferred_signals", "describe_stop", "exit_code", "stop_behind"]
 
 
 class Terminated(KeyboardInterrupt):
@@ -73,6 +73,22 @@ def deferred_signals() -> Iterator[None]:
             signal.signal(s, handler)
     if pending:
         signal.raise_signal(pending[0])
+
+
+def stop_behind(error: BaseException) -> BaseException:
+    """The ``KeyboardInterrupt`` (Ctrl-C, or :class:`Terminated`) that ``error`` was raised
+    from, else ``error`` itself. A signal handler that raises while compiled code calls back
+    into Python (numba's dispatcher, for one) can surface as another error, e.g. ``SystemError:
+    ... returned a result with an exception set``, whose cause is the interrupt; the run
+    stopped because of the signal, and is reported as such."""
+    seen: set[int] = set()
+    link: BaseException | None = error
+    while link is not None and id(link) not in seen:
+        if isinstance(link, KeyboardInterrupt):
+            return link
+        seen.add(id(link))
+        link = link.__cause__ or link.__context__
+    return error
 
 
 def describe_stop(error: BaseException) -> str:

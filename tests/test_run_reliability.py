@@ -209,6 +209,43 @@ def test_a_signal_while_writing_waits_for_run_json(seq, tmp_path, monkeypatch):
     assert (latest / "static_map.ply").stat().st_size > 0
 
 
+def test_a_signal_that_surfaces_as_another_error_stops_the_run_as_that_signal(seq, tmp_path, monkeypatch):
+    """SIGTERM whose handler raised inside compiled code that then returned anyway (numba's
+    dispatcher did so in CI: ``SystemError: ... returned a result with an exception set``,
+    caused by ``Terminated``): the run stops as stopped by SIGTERM, with the frames before it."""
+    from flowslam.frontends.kiss_icp import KissIcpFrontend
+    from flowslam.signals import Terminated
+
+    real_process, calls = KissIcpFrontend.process, []
+
+    def process_until_the_third(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            try:
+                raise Terminated(signal.SIGTERM)
+            except Terminated as stop:
+                raise SystemError("CPUDispatcher(<function f>) returned a result with an exception set") from stop
+        return real_process(self, *args, **kwargs)
+
+    monkeypatch.setattr(KissIcpFrontend, "process", process_until_the_third)
+    outcome = run_sequence(seq, load_config(frontend="kiss-icp", output_dir=str(tmp_path / "r")))
+    assert isinstance(outcome.result.error, Terminated) and outcome.result.failed_index == 2
+    info = json.loads((tmp_path / "r" / "latest" / "run.json").read_text())
+    assert info["error"] == "stopped by SIGTERM" and info["frames_processed"] == 2
+
+
+def test_an_error_without_a_signal_behind_it_stays_that_error():
+    from flowslam.signals import stop_behind
+
+    try:
+        try:
+            raise ValueError("first")
+        except ValueError as first:
+            raise RuntimeError("second") from first
+    except RuntimeError as error:
+        assert stop_behind(error) is error
+
+
 def test_stopped_at_the_first_frame_says_nothing_was_kept(kitti_extract, tmp_path):
     scans = write_kitti_bins(kitti_extract, tmp_path / "seq", 3)
     scans[0].write_bytes(scans[0].read_bytes()[:-5])
