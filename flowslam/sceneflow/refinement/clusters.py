@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from flowslam.sceneflow.refinement.compiled_neighbourhoods import (
+    box_points,
     gathered_covariances,
     near_any_points,
     neighbourhood_normals,
@@ -276,12 +277,8 @@ class ScanSurface:
         if np.any(c1 < 0) or np.any(c0 >= shape) or np.any(c1 < c0):
             return self.points[:0]
         c0, c1 = np.maximum(c0, 0), np.minimum(c1, np.array(shape) - 1)
-        rows = np.arange(c0[0], c1[0] + 1)
-        first, last = starts[rows * shape[1] + c0[1]], starts[rows * shape[1] + c1[1] + 1]
-        idx = np.sort(np.concatenate([order[a:b] for a, b in zip(first, last)]))
-        p = self.points[idx]
-        p = p[in_bounds(p, lo, hi)]
-        return p[np.argsort(p[:, 0], kind="stable")]
+        return box_points(self.points, starts, order, int(shape[1]), np.array([c0[0], c1[0]]), np.array([c0[1], c1[1]]),
+                          np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64))
 
     def around(self, xy: np.ndarray) -> np.ndarray:
         """Indices of the points in the BEV buckets (``bucket_m``) that hold a position of

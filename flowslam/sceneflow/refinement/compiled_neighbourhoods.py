@@ -11,6 +11,10 @@ the characteristic cubic, eigenvector as the longest cross product of two rows),
 neighbourhood at a time: the objects stage asks for the normals of a few dozen points at
 a time, where the ~20 NumPy calls of those closed forms cost more than the arithmetic.
 
+:func:`box_points` gathers the points inside a box from a BEV bucket index (the objects'
+ICP target boxes, ~18 per KITTI pair): one pass over the buckets the box covers, where the
+NumPy form concatenated, sorted, masked and sorted again.
+
 :func:`near_any_points` answers "is some scan point within r of each query?" from a hash
 table of r-sized cubes (:mod:`flowslam.compiled_hash`): the off-surface test of the geometric movers asks it for ~50k
 points per scan pair, where a dense voxel grid over the queries' box cost more to clear
@@ -26,7 +30,7 @@ from numba import njit
 
 from flowslam.compiled_hash import find_slot, grouped_positions, number_keys
 
-__all__ = ["gathered_covariances", "knn_within", "near_any_points", "neighbourhood_normals"]
+__all__ = ["box_points", "gathered_covariances", "knn_within", "near_any_points", "neighbourhood_normals"]
 
 
 @njit(cache=True, nogil=True)
@@ -320,3 +324,33 @@ def knn_within(points: np.ndarray, idx: np.ndarray, radius: float, k: int) -> tu
     if bounds is None:
         return None
     return _knn_within(points, idx, float(radius), k, bounds[0])
+
+
+@njit(cache=True, nogil=True)
+def box_points(points, starts, order, n_cols, rows, cols, lo, hi):
+    """(K,3) the ``points`` with ``lo <= p <= hi`` (3-vectors) among those in the BEV buckets
+    of rows ``rows[0]..rows[1]`` and columns ``cols[0]..cols[1]`` (inclusive, inside the
+    grid) of a bucket index (``order``: point indices grouped by row-major bucket id,
+    ``starts``: where each bucket id starts in it, ``n_cols``: buckets per row), ordered by
+    x, equal x by their index in ``points`` (a stable sort of the index-ordered points)."""
+    n = 0
+    for r in range(rows[0], rows[1] + 1):
+        n += starts[r * n_cols + cols[1] + 1] - starts[r * n_cols + cols[0]]
+    inside = np.empty(n, np.int64)
+    m = 0
+    for r in range(rows[0], rows[1] + 1):
+        for b in range(starts[r * n_cols + cols[0]], starts[r * n_cols + cols[1] + 1]):
+            j = order[b]
+            if (lo[0] <= points[j, 0] <= hi[0]) and (lo[1] <= points[j, 1] <= hi[1]) \
+                    and (lo[2] <= points[j, 2] <= hi[2]):
+                inside[m] = j
+                m += 1
+    inside = np.sort(inside[:m])
+    x = np.empty(m)
+    for a in range(m):
+        x[a] = points[inside[a], 0]
+    by_x = np.argsort(x, kind="mergesort")  # stable: equal x keep their index order
+    out = np.empty((m, 3))
+    for a in range(m):
+        out[a] = points[inside[by_x[a]]]
+    return out

@@ -415,10 +415,11 @@ def _visible(ego: np.ndarray, ego_plane: np.ndarray, guess: np.ndarray, range_im
     return (ego_plane < c.score_plane_m) | ~_hidden(ego, range_image, own, c)
 
 
-def _static_where_hidden(ego: np.ndarray, guess: np.ndarray, surface: ScanSurface, range_image, guesses,
+def _static_where_hidden(ego: np.ndarray, ego_plane: np.ndarray, guess: np.ndarray, range_image, guesses,
                          c: ObjectRefinementConfig) -> bool:
     """Whether scan k's hiding explains why the ego motion does not fit an object (its ego
-    landings ``ego`` and input-flow landings ``guess``, (M,3) frame k): at least
+    landings ``ego``, their :func:`_plane_distances` ``ego_plane`` and its input-flow
+    landings ``guess``, (M,3) frame k): at least
     ``hidden_static_share`` of the ego landings are :func:`_hidden` (behind something
     away from every candidate's input-flow landing, ``guesses``), or at least
     ``visible_static_share`` are visible (on scan k's surface, or not hidden behind
@@ -432,11 +433,10 @@ def _static_where_hidden(ego: np.ndarray, guess: np.ndarray, surface: ScanSurfac
         return True
     if c.visible_static_share > 1:
         return False
-    plane = _plane_distances(ego, surface, c)
-    visible = _visible(ego, plane, guess, range_image, c)
+    visible = _visible(ego, ego_plane, guess, range_image, c)
     if visible.mean() < c.visible_static_share:
         return False
-    fitness, rmse = _fit(plane[visible], c)
+    fitness, rmse = _fit(ego_plane[visible], c)
     return fitness >= c.static_fitness_accept and rmse <= c.static_accept_rmse_m
 
 
@@ -971,7 +971,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     fits = (static_fitness >= c.static_fitness_accept and static_rmse <= c.static_accept_rmse_m
             and np.count_nonzero(sub) < c.static_accept_max_movers * len(p))
     hidden = (not fits and range_image is not None and c.hidden_test and not sub.any() and not seen.any()
-              and _static_where_hidden(ego, p + flow, surface, range_image, guesses, c))
+              and _static_where_hidden(ego, ego_plane, p + flow, range_image, guesses, c))
     if fits or hidden:  # static: skip the ICP
         record["hidden"] = hidden
         record.update(accepted=True, speed_mps=0.0,
