@@ -165,3 +165,31 @@ def test_a_whole_body_motion_is_needed_only_where_the_ego_and_the_movers_motions
     assert objects._slow_and_needless(p, p, ego_plane, _shifted(0.2), [movers], surface, shift)
     assert not objects._slow_and_needless(p, p, ego_plane, whole, [movers], surface, shift)
     assert not objects._slow_and_needless(p, p, ego_plane, _shifted(0.2), [movers], surface, c)
+
+
+def _car(x0: float, y0: float, n: int, rng) -> np.ndarray:
+    """n points on a 4 x 1.8 x 1.5 m box surface standing on the ground (z 0-1.5) at (x0, y0)."""
+    return np.column_stack([rng.uniform(x0, x0 + 4.0, n), rng.uniform(y0, y0 + 1.8, n), rng.uniform(0.2, 1.5, n)])
+
+
+def test_a_piece_the_ego_motion_fits_more_tightly_leaves_a_moving_part():
+    """A moving part holding two cars in neighbouring lanes, 0.9 m apart, joined by ground
+    points flagged between them: the stopped one (ego landings at 1.4 cm, 1.7 cm under the
+    part's motion, both fitness 1) is still; the moving one (ego landings 5 cm off, on
+    the surface for a third of them) is not. With the piece's ego RMSE above the option's
+    bound, or as one piece, nothing is still."""
+    rng = np.random.default_rng(4)
+    stopped, moving = _car(0.0, 2.7, 400, rng), _car(0.0, 0.0, 400, rng)
+    ground = np.column_stack([rng.uniform(0.0, 4.0, 100), rng.uniform(1.6, 2.9, 100), np.zeros(100)])
+    p = np.vstack([stopped, moving, ground])
+    high = np.r_[np.ones(800, bool), np.zeros(100, bool)]
+    ego_plane = np.r_[np.full(400, 0.014), np.where(np.arange(400) % 3 == 0, 0.05, 0.5), np.full(100, 0.01)]
+    own_plane = np.r_[np.full(400, 0.017), np.full(400, 0.012), np.full(100, 0.01)]
+    c = ObjectRefinementConfig(still_piece_rmse_m=0.03)
+    quiet = objects._still_pieces(p, high, ego_plane, own_plane, c)
+    assert quiet[:400].all() and not quiet[400:800].any()
+    y = p[800:, 1]  # the ground between them joins its nearest car (midway: y 2.25)
+    assert quiet[800:][y > 2.5].all() and not quiet[800:][y < 2.0].any()
+    tight = ObjectRefinementConfig(still_piece_rmse_m=0.01)
+    assert not objects._still_pieces(p, high, ego_plane, own_plane, tight).any()
+    assert not objects._still_pieces(p[:400], high[:400], ego_plane[:400], own_plane[:400], c).any()  # one piece

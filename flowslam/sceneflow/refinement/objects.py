@@ -1164,8 +1164,11 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
     its own landings do (:func:`_ego_explains` on scan k's ``surface``, with
     ``part_rmse_ratio``) stays static: a
     parked car merged into a passing truck's cluster, or a hedge merged with a walker,
-    slides along itself under the other's motion. Returns the points of such parts
-    (static; they keep the object's ``instance``). With ``range_image`` (scan k's), a part
+    slides along itself under the other's motion. A moving part also loses the pieces of
+    it that the ego motion fits more tightly (:func:`_still_pieces`, ``still_piece_rmse_m``):
+    a stopped car beside a passing one, which slides along itself under its motion.
+    Returns the points of such parts and pieces (static; they keep the object's
+    ``instance``). With ``range_image`` (scan k's), a part
     with fewer than ``min_seen_through`` ``seen`` points is compared on its visible ego
     landings only (``split_visible``). A moving part holding several people (``split_people``,
     :func:`_people`) becomes one instance per person. Speeds (m/s) are the parts' median
@@ -1187,6 +1190,8 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
             mine = idx[sel]
             landing = source[mine] + flow[mine]
             ego_plane, own_plane = ego_landings(mine)[1], _plane_distances(landing, surface, c)
+            quiet = (_still_pieces(source[mine], above_ground[mine], ego_plane, own_plane, c)
+                     if c.still_piece_rmse_m > 0 and above_ground is not None else None)
             if range_image is not None and np.count_nonzero(seen[mine]) < c.min_seen_through:
                 # ego landings hidden behind something other than the part's own new surface
                 # count for neither side: scan k cannot tell where those points went
@@ -1196,6 +1201,11 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
             if len(own_plane) and _ego_explains(_fit(ego_plane, c), *landed, len(own_plane), c, c.part_rmse_ratio):
                 still[mine] = True
                 continue
+            if quiet is not None and quiet.any():
+                still[mine[quiet]] = True
+                sel, mine = sel[~quiet], mine[~quiet]
+                if not len(mine):
+                    continue
             # a moving part is one instance, or one per person (a crowd); the people split
             # only numbers instances, it decides nothing about motion
             for g, group in enumerate(_per_person(source[mine], c)):
@@ -1206,6 +1216,34 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
                 instance[mine[group]] = len(objects)
                 objects.append({"points": int(len(group)), "part_of": own, "accepted": True, "speed_mps": speed})
     return still
+
+
+def _still_pieces(p: np.ndarray, high: np.ndarray, ego_plane: np.ndarray, own_plane: np.ndarray,
+                  c: ObjectRefinementConfig) -> np.ndarray:
+    """(M,) bool: the points of a moving part ``p`` (frame k-1; ``high``: clear of the
+    ground; ``ego_plane`` / ``own_plane``: :func:`_plane_distances` of their ego landings and
+    of their own) in pieces that the ego motion explains (``still_piece_rmse_m``): the
+    part's high points as ``instance_cell_m`` components joined across its gap, each low
+    point in the piece of its nearest high point; only where there are two pieces or more."""
+    from scipy.spatial import cKDTree
+
+    quiet = np.zeros(len(p), dtype=bool)
+    hi = np.flatnonzero(high)
+    if hi.size < c.min_points:
+        return quiet
+    gap = c.instance_gap_rad * float(np.median(np.hypot(p[:, 0], p[:, 1])))
+    labels, big = _joined_components(p[hi], c, gap)
+    if len(big) < 2:
+        return quiet
+    piece = labels[cKDTree(p[hi, :2]).query(p[:, :2])[1]]
+    for b in big:
+        mine = piece == b
+        ego_fitness, ego_rmse = _fit(ego_plane[mine], c)
+        own_fitness, own_rmse = _fit(own_plane[mine], c)
+        if (ego_rmse <= min(own_rmse, c.still_piece_rmse_m)
+                and ego_fitness >= own_fitness - _fitness_margin(own_fitness, int(mine.sum()), c)):
+            quiet |= mine
+    return quiet
 
 
 def _runs(keys: np.ndarray) -> list[np.ndarray]:
