@@ -1190,8 +1190,7 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
             mine = idx[sel]
             landing = source[mine] + flow[mine]
             ego_plane, own_plane = ego_landings(mine)[1], _plane_distances(landing, surface, c)
-            quiet = (_still_pieces(source[mine], above_ground[mine], ego_plane, own_plane, c)
-                     if c.still_piece_rmse_m > 0 and above_ground is not None else None)
+            planes = ego_plane, own_plane  # of all the part's points, for its pieces
             if range_image is not None and np.count_nonzero(seen[mine]) < c.min_seen_through:
                 # ego landings hidden behind something other than the part's own new surface
                 # count for neither side: scan k cannot tell where those points went
@@ -1201,6 +1200,8 @@ def _split_instances(source: np.ndarray, flow: np.ndarray, moving: np.ndarray, i
             if len(own_plane) and _ego_explains(_fit(ego_plane, c), *landed, len(own_plane), c, c.part_rmse_ratio):
                 still[mine] = True
                 continue
+            quiet = (_still_pieces(source[mine], above_ground[mine], *planes, c)
+                     if c.still_piece_rmse_m > 0 and above_ground is not None else None)
             if quiet is not None and quiet.any():
                 still[mine[quiet]] = True
                 sel, mine = sel[~quiet], mine[~quiet]
