@@ -512,6 +512,8 @@ def flow_eval_command(
     first: First = None,
     max_frames: MaxFrames = None,
     json_out: Annotated[Optional[Path], typer.Option("--json", help="Also write the metrics as JSON.")] = None,
+    skip_pairs: Annotated[int, typer.Option(
+        "--skip-pairs", help="Run every frame but score only the pairs after the first N (a warm-up).")] = 0,
     no_progress: NoProgress = False,
 ):
     """Scene-flow metrics of a frontend in pipeline conditions: EPE3D, Acc, 3-way EPE, IoU."""
@@ -526,12 +528,13 @@ def flow_eval_command(
             "ssf.network.weights": weights and str(weights), "dataset.first_frame": first,
             "dataset.max_frames": max_frames})
         if no_progress:
-            result = evaluate_flow(sequence, cfg)
+            result = evaluate_flow(sequence, cfg, skip_pairs=skip_pairs)
         else:
             with _progress() as bar:
                 on_start, on_frame = _progress_callbacks(bar, f"flow-eval {frontend}")
-                result = evaluate_flow(sequence, cfg, on_start=on_start, on_frame=on_frame)
-        table = Table(title=f"scene flow of {frontend} on {sequence} ({result['pairs']} pairs)")
+                result = evaluate_flow(sequence, cfg, on_start=on_start, on_frame=on_frame, skip_pairs=skip_pairs)
+        skipped = f", the first {skip_pairs} not scored" if skip_pairs else ""
+        table = Table(title=f"scene flow of {frontend} on {sequence} ({result['pairs']} pairs{skipped})")
         table.add_column("metric")
         table.add_column(frontend, justify="right")
         table.add_column("ego-gt reference", justify="right")

@@ -149,13 +149,17 @@ def evaluate_flow(
     on_start: Callable[[int], None] | None = None,
     on_frame: Callable[[int, float], None] | None = None,
     frontend=None,
+    skip_pairs: int = 0,
 ) -> dict:
     """Run ``config.frontend`` (or the given ``frontend`` instance) with ``config.backend``
     over the sequence at ``path`` (opened with ``config.dataset``, frames from
-    ``dataset.first_frame`` / ``max_frames``) and return :meth:`FlowEvaluation.result`.
+    ``dataset.first_frame`` / ``max_frames``) and return :meth:`FlowEvaluation.result`,
+    with ``skipped_pairs``. Every frame runs; with ``skip_pairs`` N the first N scan pairs
+    are not scored (a warm-up: ``ssf``'s slow-mover test needs a scan ~0.7 s older than
+    scan k-1, so its first pairs see no slow movers).
 
-    Raises ``InputError`` when the sequence has no GT poses, and re-raises the error
-    that stopped the loop, if any.
+    Raises ``InputError`` when the sequence has no GT poses or ``skip_pairs`` leaves no
+    pair to score, and re-raises the error that stopped the loop, if any.
     """
     from flowslam.datasets import frame_range, open_dataset
     from flowslam.errors import InputError
@@ -166,12 +170,16 @@ def evaluate_flow(
     if dataset.gt_poses is None:
         raise InputError(path, "flow-eval needs GT poses and GT flow")
     frames = frame_range(len(dataset), config.dataset)
+    if skip_pairs < 0 or skip_pairs >= len(frames) - 1:
+        raise InputError("--skip-pairs", f"{skip_pairs} leaves no pair to score: the {len(frames)} frames make "
+                         f"{max(len(frames) - 1, 0)} pairs (use 0 to {max(len(frames) - 2, 0)})")
     frontend = frontend or make_frontend(config.frontend, config)
-    sink = FlowEvaluation(np.asarray(dataset.gt_poses))
+    scored = set(frames[skip_pairs + 1:]) if skip_pairs else None  # the newer scan of each scored pair
+    sink = FlowEvaluation(np.asarray(dataset.gt_poses), scored=scored)
     if on_start is not None:
         on_start(len(frames))
     result = run_pipeline(dataset, frontend, make_backend(config.backend, config), frames, on_frame,
                           on_output=sink.on_output)
     if result.error is not None:
         raise result.error
-    return sink.result(getattr(frontend, "name", config.frontend))
+    return {**sink.result(getattr(frontend, "name", config.frontend)), "skipped_pairs": skip_pairs}

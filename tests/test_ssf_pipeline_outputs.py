@@ -65,3 +65,16 @@ def test_flow_eval_honours_the_dataset_section_of_the_config(sim_dt, tmp_path):
     config.write_text(yaml.safe_dump({"dataset": {"format": "argoverse2"}}))
     assert_one_line_error(flowslam("flow-eval", "--no-progress", "-f", "gt-flow", "-c", str(config), str(sim_dt)),
                           str(sim_dt))
+
+
+def test_flow_eval_can_leave_a_warm_up_unscored(sim_dt, tmp_path):
+    """``--skip-pairs N``: every frame runs, the first N pairs are not scored; a value that
+    leaves no pair is refused before anything runs."""
+    out = tmp_path / "m.json"
+    proc = flowslam("flow-eval", "--no-progress", "-f", "gt-flow", "--skip-pairs", "2", "--json", str(out), str(sim_dt))
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(out.read_text())
+    assert result["pairs"] == 3 and result["skipped_pairs"] == 2  # 6 frames, 5 pairs, the last 3 scored
+    assert result["flow"]["EPE3D"] < 1e-6 and "the first 2 not scored" in " ".join(proc.stdout.split())
+    assert_one_line_error(flowslam("flow-eval", "--no-progress", "-f", "gt-flow", "--skip-pairs", "5", str(sim_dt)),
+                          "--skip-pairs", "no pair to score")
