@@ -1226,17 +1226,14 @@ def _still_pieces(p: np.ndarray, high: np.ndarray, ego_plane: np.ndarray, own_pl
     of their own) in pieces that the ego motion explains (``still_piece_rmse_m``): the
     part's high points as ``instance_cell_m`` components joined across its gap, each low
     point in the piece of its nearest high point; only where there are two pieces or more."""
-    from scipy.spatial import cKDTree
-
     quiet = np.zeros(len(p), dtype=bool)
     hi = np.flatnonzero(high)
     if hi.size < c.min_points:
         return quiet
-    gap = c.instance_gap_rad * float(np.median(np.hypot(p[:, 0], p[:, 1])))
-    labels, big = _joined_components(p[hi], c, gap)
+    labels, big = _joined_components(p[hi], c, _instance_gap(p, c))
     if len(big) < 2:
         return quiet
-    piece = labels[cKDTree(p[hi, :2]).query(p[:, :2])[1]]
+    piece = _nearest_labels(p, hi, labels)
     for b in big:
         mine = piece == b
         ego_fitness, ego_rmse = _fit(ego_plane[mine], c)
@@ -1245,6 +1242,20 @@ def _still_pieces(p: np.ndarray, high: np.ndarray, ego_plane: np.ndarray, own_pl
                 and ego_fitness >= own_fitness - _fitness_margin(own_fitness, int(mine.sum()), c)):
             quiet |= mine
     return quiet
+
+
+def _instance_gap(p: np.ndarray, c: ObjectRefinementConfig) -> float:
+    """The distance (m) across which BEV components of the points ``p`` (one motion's) join:
+    ``instance_gap_rad`` times their median horizontal range."""
+    return c.instance_gap_rad * float(np.median(np.hypot(p[:, 0], p[:, 1])))
+
+
+def _nearest_labels(p: np.ndarray, idx: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """(M,) the label of each point of ``p`` (M,3): that of its nearest (BEV) point among
+    ``p[idx]``, which carry ``labels`` (len(idx),)."""
+    from scipy.spatial import cKDTree
+
+    return labels[cKDTree(p[idx, :2]).query(p[:, :2])[1]]
 
 
 def _runs(keys: np.ndarray) -> list[np.ndarray]:
@@ -1309,7 +1320,7 @@ def _parts(p: np.ndarray, which: np.ndarray, c: ObjectRefinementConfig,
     n = 0
     for m in np.unique(which):
         sel = np.flatnonzero(which == m)
-        gap = c.instance_gap_rad * float(np.median(np.hypot(p[sel, 0], p[sel, 1])))
+        gap = _instance_gap(p[sel], c)
         labels, big = _joined_components(p[sel], c, gap)
         if above_ground is not None:
             labels, big = _people_apart_above_ground(p[sel], above_ground[sel], labels, big, gap, c)
@@ -1337,8 +1348,6 @@ def _people_apart_above_ground(p: np.ndarray, high: np.ndarray, labels: np.ndarr
     component of its nearest high point (BEV), when those are more, and each is at most
     ``PERSON_MAX_EXTENT_M`` wide: walkers whose feet, or the ground flagged between them,
     touch in BEV. A vehicle whose sparse sides part above its wheels stays whole."""
-    from scipy.spatial import cKDTree
-
     idx = np.flatnonzero(high)
     if idx.size < c.min_points or idx.size == len(p):
         return labels, big
@@ -1347,7 +1356,7 @@ def _people_apart_above_ground(p: np.ndarray, high: np.ndarray, labels: np.ndarr
         return labels, big
     if bev_extent(p[idx, :2], labels_high, int(labels_high.max()) + 1)[big_high].max() > PERSON_MAX_EXTENT_M:
         return labels, big
-    return labels_high[cKDTree(p[idx, :2]).query(p[:, :2])[1]], big_high
+    return _nearest_labels(p, idx, labels_high), big_high
 
 
 def _people(p: np.ndarray, c: ObjectRefinementConfig) -> list[np.ndarray]:
