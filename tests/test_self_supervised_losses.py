@@ -228,6 +228,24 @@ def test_distillation_bce_weighs_rare_dynamic_points_up(max_pos_weight, weight):
     assert loss.item() == pytest.approx((39 + weight) * np.log(2) / 40, abs=1e-12)
 
 
+@pytest.mark.parametrize("calibrated, optimum_share", [(False, 0.5), (True, 0.1)])
+def test_calibrated_distillation_bce_is_minimised_at_the_share_of_dynamic_points(calibrated, optimum_share):
+    # 10 dynamic points of 100: the positive terms weigh 90 / 10 = 9. One logit z for every point:
+    # the weighted BCE 9 * 10 * -log q + 90 * -log(1 - q) is least at q = 0.5 (9 times the odds of
+    # the share 0.1); with the logit shifted by log 9 inside the loss, at q = 0.1 (the share itself)
+    dyn = torch.arange(100) < 10
+    flow = torch.zeros(100, 3, dtype=D)
+
+    def loss(z: float) -> float:
+        logit = torch.full((100,), z, dtype=D)
+        return distillation_loss(flow, logit, flow, dyn, bce_weight=1.0, calibrated=calibrated).item()
+
+    best = np.log(optimum_share / (1 - optimum_share))
+    assert loss(best) < min(loss(best - 0.05), loss(best + 0.05))
+    shifted = best - np.log(9) if not calibrated else best + np.log(9)  # where the other loss is least
+    assert loss(best) < loss(shifted) - 0.01
+
+
 def test_distillation_loss_mask_restricts_to_masked_rows():
     g = torch.Generator().manual_seed(5)
     res = torch.randn(30, 3, generator=g, dtype=D).requires_grad_(True)

@@ -130,7 +130,7 @@ def pair_loss(out: dict, s: AdaptSample, config: PipelineConfig, rows: slice) ->
         parts["distill"] = w.distill * ss.distillation_loss(
             residual, logit, torch.from_numpy(s.sample.residual).to(dev),
             torch.from_numpy(s.sample.dynamic.astype(np.float32)).to(dev), mask=valid, bce_weight=w.distill_bce,
-            max_pos_weight=w.max_pos_weight)
+            max_pos_weight=w.max_pos_weight, calibrated=w.calibrated_bce)
     need_tree = w.data or w.rigid_chamfer
     tree = None
     if need_tree:

@@ -32,6 +32,8 @@ neighbour found keeps the gradient.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -149,18 +151,26 @@ def semantic_consistency_loss(flow: Tensor, dynamic_logit: Tensor, ego_flow: Ten
 
 
 def distillation_loss(residual: Tensor, dynamic_logit: Tensor, teacher_residual: Tensor, teacher_dynamic: Tensor,
-                      mask: Tensor | None = None, bce_weight: float = 0.2, max_pos_weight: float = 10.0) -> Tensor:
+                      mask: Tensor | None = None, bce_weight: float = 0.2, max_pos_weight: float = 10.0,
+                      calibrated: bool = False) -> Tensor:
     """The network against the teacher (the refined ``ssf`` pipeline): MambaFlow's
     scene-adaptive loss on the residual flow plus ``bce_weight`` x BCE of the dynamic
     logit against the teacher's dynamic labels, over ``mask`` (e.g. the points inside
     the network's grid). The BCE's positive (dynamic) terms weigh ``negatives /
     positives`` of the sample, at most ``max_pos_weight`` (1: plain BCE): on real scans
     well under 1 % of the points move, and a plain BCE teaches the head to call nothing
-    dynamic."""
+    dynamic.
+
+    A weight ``w`` on the positive terms moves the BCE's minimiser to the true log-odds
+    plus ``log w``: the head then calls points dynamic at ``w`` times lower odds than a
+    plainly trained head, whose threshold the pipeline keeps. ``calibrated`` adds ``log w``
+    to the logit inside the loss (logit adjustment), so that the minimiser is the true
+    log-odds again while the positive terms keep their weight."""
     if mask is not None:
         residual, teacher_residual = residual[mask], teacher_residual[mask]
         dynamic_logit, teacher_dynamic = dynamic_logit[mask], teacher_dynamic[mask]
     flow_term = scene_adaptive_loss(residual, teacher_residual)
     positives = float(teacher_dynamic.sum())
     pos_weight = min(max(1.0, (len(teacher_dynamic) - positives) / max(positives, 1.0)), max_pos_weight)
-    return flow_term + bce_weight * dynamic_bce(dynamic_logit, teacher_dynamic, pos_weight=pos_weight)
+    logit = dynamic_logit + math.log(pos_weight) if calibrated else dynamic_logit
+    return flow_term + bce_weight * dynamic_bce(logit, teacher_dynamic, pos_weight=pos_weight)
