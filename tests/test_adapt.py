@@ -11,6 +11,7 @@ import torch
 from flowslam.config import load_config
 from flowslam.datasets import open_dataset
 from flowslam.sceneflow.adapt import adapt, split_frames
+from flowslam.sceneflow.adapt.loop import near_best
 from flowslam.sceneflow.adapt.samples import window
 from flowslam.sceneflow.network.weights import load_weights, sha256_of
 
@@ -55,6 +56,16 @@ def test_split_keeps_a_tail_of_at_least_two_scans():
     assert split_frames(8, 0.25) == 6 and split_frames(10, 0.4) == 6
     with pytest.raises(ValueError, match="too few"):
         split_frames(3, 0.2)
+
+
+@pytest.mark.parametrize("value, best, start, tolerance, written", [
+    (0.104, 0.100, 0.120, 0.05, True),   # within 5 % of the best, better than the start
+    (0.106, 0.100, 0.120, 0.05, False),  # beyond the tolerance
+    (0.1005, 0.100, 0.101, 0.01, True),
+    (0.102, 0.100, 0.101, 0.05, False),  # within the tolerance, but worse than the starting weights
+])
+def test_an_epoch_is_written_when_near_the_best_and_not_worse_than_the_start(value, best, start, tolerance, written):
+    assert near_best(value, best, start, tolerance) is written
 
 
 def test_window_repeats_the_first_scan_like_inference():

@@ -11,7 +11,8 @@
 4. After every epoch the held-out tail's pairs are scored without labels: the
    network's EPE against the teacher on fixed held-out samples (teacher poses with a
    seeded draw of the training prior errors; ``sample_scores``). The latest epoch within
-   ``select_tolerance`` of the best score is written, and the run stops after
+   ``select_tolerance`` of the best score and no worse than the starting weights' score
+   is written (``near_best``), and the run stops after
    ``patience`` epochs without a new best. Epoch "0" is the starting weights: if no
    epoch comes near them, the written weights are the starting ones.
    (A network-only run over the tail was tried as the per-epoch score: it jumps from
@@ -299,7 +300,7 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
             value = scores.get(SELECT_BY, math.inf)
             if value < best:
                 best, best_epoch = value, epoch
-            if value <= best * (1.0 + a.select_tolerance):  # the latest near-best epoch is written
+            if near_best(value, best, history[0].get(f"holdout_{SELECT_BY}", math.inf), a.select_tolerance):
                 chosen_epoch = epoch
                 chosen_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
             _save(last, {"model": model.state_dict(), "optimizer": optimizer.state_dict(),
@@ -330,6 +331,14 @@ def adapt(paths: list[Path], config: PipelineConfig, weights_out: Path, resume: 
                                       "holdout_frames": [s.frames[s.tail_start], s.frames[-1]]} for s in sequences}}
     (out_dir / "report.json").write_text(json.dumps(result, indent=2, default=str))
     return result
+
+
+def near_best(value: float, best: float, start: float, tolerance: float) -> bool:
+    """Whether an epoch whose held-out score is ``value`` is written (the latest such epoch
+    is): within ``tolerance`` (a fraction) of the ``best`` score so far, and no worse than
+    the starting weights' score ``start`` (adaptation never writes weights that the tail
+    scores below the ones it started from)."""
+    return value <= best * (1.0 + tolerance) and value <= start
 
 
 def _train_mode(model: torch.nn.Module, freeze_norm: bool) -> None:
