@@ -5,7 +5,8 @@ a static refinement started 40 deg / 10 deg off is flagged, one started right is
 a simulated 2 Hz sequence with turns of 20-45 deg per frame, ``ssf`` without recovery
 gets steps wrong by the whole turn (the constant-velocity prior starts the registration
 too far away); with recovery every step is within 10 cm / 1 deg, and run.json counts
-the recoveries.
+the recoveries. A 10 Hz sequence that starts at speed with a turn leaves its first step
+near the zero prior, unflagged, unless the first step is checked (the default since stop 57).
 """
 
 from __future__ import annotations
@@ -51,13 +52,29 @@ def test_first_step_cue_fires_once_and_only_when_asked():
                         prior_translation_m=0.0)
     asked = MotionFaultDetector(MotionRecoveryConfig(check_first_step=True))
     assert [asked.check(good) for _ in range(3)] == [["first_step"], [], []]
-    default = MotionFaultDetector(MotionRecoveryConfig())
-    assert [default.check(good) for _ in range(3)] == [[], [], []]
+    not_asked = MotionFaultDetector(MotionRecoveryConfig(check_first_step=False))
+    assert [not_asked.check(good) for _ in range(3)] == [[], [], []]
+
+
+def test_low_fitness_is_a_cue_only_while_the_relative_cues_wait():
+    def step(fitness):
+        return StepEvidence(fallback=False, refine_accepted=True, refine_fitness=fitness, prior_rotation_rad=0.0,
+                            prior_translation_m=0.0)
+
+    detector = MotionFaultDetector(MotionRecoveryConfig(check_first_step=False, early_min_fitness=0.5, min_history=2))
+    assert detector.check(step(0.31)) == ["early_low_fitness"]
+    for _ in range(2):
+        assert detector.check(step(0.70)) == []
+        detector.remember(step(0.70))
+    # with a history, the relative cue judges: 0.45 is below 0.8 x 0.70, 0.6 is not (and no floor applies)
+    assert detector.check(step(0.45)) == ["fitness_drop"] and detector.check(step(0.60)) == []
+    off = MotionFaultDetector(MotionRecoveryConfig(check_first_step=False, early_min_fitness=0.0))
+    assert off.check(step(0.31)) == []
 
 
 def test_detector_flags_a_wrong_start_and_not_a_right_one(kitti):
     dataset, ref = kitti
-    detector = MotionFaultDetector(MotionRecoveryConfig())
+    detector = MotionFaultDetector(MotionRecoveryConfig(check_first_step=False))  # the relative cues only
     for k in (2, 3, 4):  # good steps make the history of the relative cues
         evidence, _ = _refined_step(dataset, k, geometry.relative(ref[k - 1], ref[k]))
         assert detector.check(evidence) == []
@@ -85,7 +102,8 @@ def test_detector_flags_a_wrong_start_and_not_a_right_one(kitti):
 
 
 def test_prior_disagreement_is_a_cue():
-    detector = MotionFaultDetector(MotionRecoveryConfig(max_prior_rotation_deg=10.0, max_prior_translation_m=2.0))
+    detector = MotionFaultDetector(MotionRecoveryConfig(max_prior_rotation_deg=10.0, max_prior_translation_m=2.0,
+                                                          check_first_step=False))
     T_prior = np.eye(4)
     turned = geometry.make_T(geometry.from_euler("z", 30.0, degrees=True)[:3, :3], [3.0, 0.0, 0.0])
     rot, trans = prior_disagreement(T_prior, turned)
@@ -140,16 +158,31 @@ def sharp_turns(tmp_path_factory):
     return root / "seq"
 
 
-def _run_ssf(sequence, out, recovery: bool, objects: bool = True, first_step: bool = False):
-    """``run_sequence`` of ``ssf`` (odometry backend): per-step (m, deg) errors and run.json."""
+@pytest.fixture(scope="module")
+def fast_start(tmp_path_factory):
+    """5 frames at 10 Hz that start at 12 m/s with a 9.5 deg turn in the first step, straight
+    after (hdl64 at 1024 columns, static town)."""
+    from flowslam.simulation import simulate
+    from flowslam.simulation.ego_path import write_sharp_turn_path
+
+    root = tmp_path_factory.mktemp("fast")
+    path = write_sharp_turn_path(root / "path.tum", (9.5, 0.0, 0.0, 0.0, 0.0), step_m=1.2, period_s=0.1)
+    simulate(root / "seq", preset="static", frames=5, seed=9, sensor="hdl64", columns=1024, trajectory=path)
+    return root / "seq"
+
+
+def _run_ssf(sequence, out, recovery: bool, objects: bool = True, first_step: bool | None = False, **options):
+    """``run_sequence`` of ``ssf`` (odometry backend): per-step (m, deg) errors and run.json
+    (``first_step`` None: the default of ``check_first_step``; ``options``: more config keys)."""
     from flowslam.config import load_config
     from flowslam.datasets import open_dataset
     from flowslam.run import run_sequence
 
+    if first_step is not None:
+        options["ssf.recovery.check_first_step"] = first_step
     config = load_config(frontend="ssf", backend="odometry", output_dir=str(out),
                          **{"ssf.recovery.enabled": recovery, "ssf.objects.enabled": objects,
-                            "ssf.recovery.check_first_step": first_step,
-                            "output.static_map": False, "output.plot": False})
+                            "output.static_map": False, "output.plot": False}, **options)
     outcome = run_sequence(sequence, config)
     outcome.raise_for_error()
     gt = np.asarray(open_dataset(sequence).gt_poses)
@@ -191,3 +224,17 @@ def test_sharp_turns_with_recovery_every_step_within_10_cm_and_1_deg(sharp_turns
     assert summary["recoveries"] >= 3, summary  # every change of turn rate
     assert summary["motion_faults"]["by_outcome"]["recovered"] == summary["recoveries"]
     assert summary["motion_faults"]["checked"] == 11
+
+
+def test_a_sequence_that_starts_at_speed_is_caught_at_its_first_step(fast_start, tmp_path, one_torch_thread):
+    # without the first-step checks (check_first_step and early_min_fitness, off until stop 57)
+    # the first step stays near the zero prior and no relative cue has a history to fire
+    errors, run = _run_ssf(fast_start, tmp_path / "off", recovery=True, objects=False,
+                           **{"ssf.recovery.early_min_fitness": 0.0})
+    assert errors[0][0] > STEP_LIMIT_M and run["fallbacks"]["motion_faults"]["detected"] == 0, errors
+    # the defaults re-initialise the first step and keep the better-explained solution
+    errors, run = _run_ssf(fast_start, tmp_path / "on", recovery=True, objects=False, first_step=None)
+    worst_m, worst_deg = np.max(errors, axis=0)
+    assert worst_m < STEP_LIMIT_M and worst_deg < STEP_LIMIT_DEG, errors
+    faults = run["fallbacks"]["motion_faults"]
+    assert faults["by_cue"]["first_step"] == 1 and faults["by_outcome"].get("recovered", 0) >= 1

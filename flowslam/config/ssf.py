@@ -682,8 +682,11 @@ class GlobalStartConfig(StrictModel):
     scan k-1, no prior needed. The fields below replace the defaults of the ``ransac``
     frontend's options (``ransac:``); the others (feature radii, checkers) keep those defaults."""
 
-    voxel_size_m: float = Field(0.5, gt=0)
-    """Voxel of the downsampled clouds that features, RANSAC and ICP work on."""
+    voxel_size_m: float = Field(1.0, gt=0)
+    """Voxel of the downsampled clouds that features, RANSAC and ICP work on. 1.0 m (was
+    0.5): on five KITTI 64-beam pairs the global start then took 0.33-0.45 s instead of
+    1.2-2.2 s and landed 1-6 cm / 0.02-0.11 deg from the reference (0.5 m: 1-2 cm), which
+    the stages run again from it refine (docs/motion_recovery.md, stop 57)."""
     max_range_m: float = Field(80.0, gt=0)
     """Points farther than this from the sensor are not used."""
     max_iterations: int = Field(100000, ge=1)
@@ -706,15 +709,17 @@ class MotionRecoveryConfig(StrictModel):
 
     enabled: bool = True
     """False: faults are still detected and counted (run.json), nothing is re-run."""
-    check_first_step: bool = False
-    """Cue ``first_step`` (opt-in): the first step of a sequence is always re-initialised
-    and the better-explained solution kept. Its prior is no measurement (zero motion), the
-    relative cues have no history yet, and a solution near a wrong zero prior does not
-    disagree with it: a sequence that starts at speed is caught here before its first step
-    becomes the next prior (stop 48: weights that stayed 2.9 m off on the first steps of
-    the sharp-turn sequence end within 4 mm with it). Costs one re-initialisation per
-    sequence: ~1.7 s on a KITTI 64-beam pair (FPFH features of both scans, RANSAC, and the
-    stages run again), so off by default."""
+    check_first_step: bool = True
+    """Cue ``first_step``: the first step of a sequence is always re-initialised and the
+    better-explained solution kept. Its prior is no measurement (zero motion), the relative
+    cues have no history yet, and a solution near a wrong zero prior does not disagree with
+    it: a sequence that starts at speed is caught here before its first step becomes the
+    next prior (stop 48: weights that stayed 2.9 m off on the first steps of the sharp-turn
+    sequence end within 4 mm with it; stop 57: the shipped weights left a 10 Hz start with
+    1.5 m and 8 deg in its first step 0.82 m / 3.5 deg off, unflagged). Costs one
+    re-initialisation per sequence: ~0.6 s on a KITTI 64-beam pair (FPFH features of both
+    scans at ``global_start.voxel_size_m``, RANSAC, and the stages run again; 1.7 s with the
+    0.5 m voxel of stops 48-56, when it was off by default)."""
     fitness_drop: float = Field(0.8, ge=0, le=1)
     """Cue ``fitness_drop``: the refinement's fitness is below this times the median fitness
     of the last good steps."""
@@ -727,6 +732,12 @@ class MotionRecoveryConfig(StrictModel):
     """Good steps whose fitness and dynamic share make the medians above."""
     min_history: int = Field(2, ge=1)
     """The relative cues wait for this many good steps."""
+    early_min_fitness: float = Field(0.5, ge=0, le=1)
+    """Cue ``early_low_fitness``: while the relative cues wait (fewer than ``min_history``
+    good steps), an accepted refinement whose fitness is below this. 0: off. Normal
+    sequence starts measured 0.62-0.74 (KITTI, simulated hdl64 / vlp32c, stop 57); a step
+    right after a sudden turn at a sequence's start, whose prior carries the turn on,
+    refined at 0.31 and ended 0.9 m / 6.8 deg off with no other cue."""
     max_prior_rotation_deg: float = Field(10.0, gt=0)
     """Cue ``prior_disagreement``: the measurement differs from the constant-velocity
     prior by more than this rotation ..."""

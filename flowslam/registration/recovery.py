@@ -10,8 +10,9 @@ is never used here. What shows a faulty step is the registration's own evidence:
   refinement was rejected; its fitness dropped well below that of the last good steps;
   the network called much more of the scan dynamic than on the last good steps (a wrong
   ego prior makes static structure look moving); the result differs from the prior by
-  more than a plausible change of motion; optionally, the step is the sequence's first,
-  whose prior is no measurement;
+  more than a plausible change of motion; before the relative cues have a history, the
+  refinement's fitness is below an absolute floor; the step is the sequence's first,
+  whose prior is no measurement (``check_first_step``);
 - **evidence** (:class:`AlignmentEvidence`, computed only for a faulty step): the share
   of scan k's points that land on scan k-1 under a candidate ``T_prev_curr``; the same
   measure on the same points judges the first solution and the re-initialised one;
@@ -42,6 +43,7 @@ FAULT_CUES = {
     "dynamic_jump": "the network called much more of the scan dynamic than on the last good steps",
     "prior_disagreement": "the measurement is far from the constant-velocity prior",
     "first_step": "the first step of the sequence, whose prior is no measurement (always checked)",
+    "early_low_fitness": "the refinement's fitness is low while the relative cues have no history yet",
 }
 
 
@@ -96,6 +98,8 @@ class MotionFaultDetector:
             "prior_disagreement": e.prior_rotation_rad > np.deg2rad(c.max_prior_rotation_deg)
             or e.prior_translation_m > c.max_prior_translation_m,
             "first_step": first and c.check_first_step,
+            "early_low_fitness": e.refine_accepted is True and e.refine_fitness is not None
+            and len(self._fitness) < c.min_history and e.refine_fitness < c.early_min_fitness,
         }
         return [cue for cue, on in fired.items() if on]
 
