@@ -68,7 +68,7 @@ import numpy as np
 
 from flowslam.geometry import rigid_flow, transform_points
 from flowslam.config.ssf import ObjectRefinementConfig
-from flowslam.sceneflow.refinement.compiled_icp import IcpTarget, register
+from flowslam.sceneflow.refinement.compiled_icp import IcpTarget, register, register_point_to_plane
 from flowslam.sceneflow.refinement.clusters import ScanSurface, bev_clusters, bev_extent, in_bounds, lowest_per_cell
 from flowslam.sceneflow.refinement.visibility import baseline_window_margins
 
@@ -114,35 +114,32 @@ def _near_landing(box: np.ndarray, p: np.ndarray, T: np.ndarray, max_dist: float
     return box[in_bounds(box, landing.min(axis=0) - reach, landing.max(axis=0) + reach)]
 
 
-def _polish(p: np.ndarray, src, box: np.ndarray, T: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray | None:
+def _polish(p: np.ndarray, box: np.ndarray, T: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray | None:
     """One point-to-plane ICP of ``p`` from ``T`` at the finest correspondence distance, on
-    the normals of the target points near its landing (estimated within
-    ``plane_stage_radius_m``); None when too few target points. Point-to-point converges
-    slowly along the faces an object slides on (its sides pull nothing, so each step moves
-    it by the share of its front and back faces); point-to-plane finishes that slide."""
+    the normals of the target points near its landing (Open3D's ``estimate_normals``: the
+    smallest axis of their 20 nearest neighbours within ``plane_stage_radius_m``, each
+    point on its own, spread over the cores); None when too few target points.
+    Point-to-point converges slowly along the faces an object slides on (its sides pull
+    nothing, so each step moves it by the share of its front and back faces);
+    point-to-plane finishes that slide. The ICP is Open3D's point-to-plane rule without a
+    kernel, compiled (:func:`~flowslam.sceneflow.refinement.compiled_icp.register_point_to_plane`):
+    its sums run in the source's order, where the per-thread sums of Open3D's
+    ``registration_icp`` made the objects of a sequence differ from one run to the next
+    (stop 57)."""
     import open3d as o3d
 
-    reg = o3d.pipelines.registration
     near = _near_landing(box, p, T, c.correspondence_m[-1])
     if len(near) < PLANE_STAGE_MIN_TARGET:
         return None
-    target = _cloud(near)
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(near))
     target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=c.plane_stage_radius_m, max_nn=20))
-    return np.asarray(reg.registration_icp(src, target, c.correspondence_m[-1], T,
-                                           reg.TransformationEstimationPointToPlane(), _criteria(c)).transformation).copy()
+    normals = np.asarray(target.normals)
+    return register_point_to_plane(p, IcpTarget(near), normals, T, [c.correspondence_m[-1]], c.max_iterations,
+                                   ICP_RELATIVE_CHANGE, ICP_RELATIVE_CHANGE, kernel=np.inf)
 
 
 ICP_RELATIVE_CHANGE = 1e-6
 """An object ICP stage stops when its fitness and inlier RMSE (m) each change by less."""
-
-
-def _criteria(c: ObjectRefinementConfig):
-    """Open3D's form of the object ICP's convergence criteria (``max_iterations`` per stage)."""
-    import open3d as o3d
-
-    return o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=ICP_RELATIVE_CHANGE,
-                                                             relative_rmse=ICP_RELATIVE_CHANGE,
-                                                             max_iteration=c.max_iterations)
 
 
 SAME_SOLUTION_M = 0.03
@@ -155,13 +152,6 @@ PLANE_STAGE_MIN_TARGET = 10
 FINE_STAGE_SLACK_M = 0.5
 """How far (m) the point-to-plane polish may move an object beyond its correspondence
 distance and still see every target point it could match (:func:`_polish`)."""
-
-
-def _cloud(points: np.ndarray):
-    """Open3D point cloud of (N,3) points (for the point-to-plane polish)."""
-    import open3d as o3d
-
-    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
 
 
 def _best_icp(p: np.ndarray, tgt: IcpTarget, surface: ScanSurface, starts: list[np.ndarray],
@@ -217,7 +207,7 @@ def _polished(q: np.ndarray, box: np.ndarray, T: np.ndarray, fitness: float, rms
     real KITTI most objects are static)."""
     if c.plane_stage_radius_m <= 0 or len(q) < c.plane_stage_min_points:
         return T
-    polished = _polish(q, _cloud(q), box, T, c)
+    polished = _polish(q, box, T, c)
     if polished is None:
         return T
     if c.planar_motion:
