@@ -717,9 +717,9 @@ class MotionRecoveryConfig(StrictModel):
     next prior (stop 48: weights that stayed 2.9 m off on the first steps of the sharp-turn
     sequence end within 4 mm with it; stop 57: the shipped weights left a 10 Hz start with
     1.5 m and 8 deg in its first step 0.82 m / 3.5 deg off, unflagged). Costs one
-    re-initialisation per sequence: ~0.6 s on a KITTI 64-beam pair (FPFH features of both
-    scans at ``global_start.voxel_size_m``, RANSAC, and the stages run again; 1.7 s with the
-    0.5 m voxel of stops 48-56, when it was off by default)."""
+    re-initialisation per sequence: 0.6-1.0 s on a KITTI 64-beam pair (FPFH features of both
+    scans at ``global_start.voxel_size_m`` and RANSAC ~0.4 s, the stages run again; 1.7-2.1 s
+    with the 0.5 m voxel of stops 48-56, when it was off by default)."""
     fitness_drop: float = Field(0.8, ge=0, le=1)
     """Cue ``fitness_drop``: the refinement's fitness is below this times the median fitness
     of the last good steps."""
