@@ -39,12 +39,31 @@ def smallest_eigenvectors(cov: np.ndarray, smallest: np.ndarray) -> np.ndarray:
     ``cov - smallest I`` (orthogonal to all three rows); NaN rows where that matrix is 0.
 
     Defined up to sign, and not at all where the two smallest eigenvalues are equal (a
-    line or a point): any unit vector of that eigenspace is then as good as eigh's."""
+    line): any unit vector of that eigenspace is then as good as eigh's. There the
+    shifted rows all lie along the largest axis and their cross products are rounding
+    noise pointing anywhere, so where the longest cross product is below
+    ``PARALLEL_ROWS_SIN`` times the longest row squared, the result is a unit vector
+    orthogonal to the longest row instead."""
     shifted = np.asarray(cov, dtype=np.float64) - np.asarray(smallest)[:, None, None] * np.eye(3)
     crosses = np.stack([np.cross(shifted[:, 0], shifted[:, 1]), np.cross(shifted[:, 0], shifted[:, 2]),
                         np.cross(shifted[:, 1], shifted[:, 2])], axis=1)
     lengths = np.einsum("nki,nki->nk", crosses, crosses)
     rows = np.arange(len(crosses))
     best = lengths.argmax(axis=1)
+    vectors, longest = crosses[rows, best], lengths[rows, best]
+    row_lengths = np.einsum("nki,nki->nk", shifted, shifted)
+    top = row_lengths.argmax(axis=1)
+    top_length = row_lengths[rows, top]
+    parallel = np.flatnonzero((top_length > 0) & (longest <= PARALLEL_ROWS_SIN ** 2 * top_length ** 2))
+    if parallel.size:  # a line: across the longest row, towards the axis least along it
+        r = shifted[parallel, top[parallel]]
+        axis = np.eye(3)[np.abs(r).argmin(axis=1)]
+        vectors[parallel] = np.cross(r, axis)
+        longest[parallel] = np.einsum("ni,ni->n", vectors[parallel], vectors[parallel])
     with np.errstate(invalid="ignore", divide="ignore"):
-        return crosses[rows, best] / np.sqrt(lengths[rows, best])[:, None]
+        return vectors / np.sqrt(longest)[:, None]
+
+
+PARALLEL_ROWS_SIN = 1e-6
+"""Rows of ``cov - smallest I`` closer to parallel than this sine make that matrix rank one
+to rounding (:func:`smallest_eigenvectors`): a double smallest eigenvalue."""
