@@ -32,6 +32,7 @@ FALLBACK_CODES = {
 RECOVERY_OUTCOMES = {
     "recovered": "re-initialised globally; the new solution explains the scans better and was kept",
     "kept": "re-initialised globally; the first solution explained the scans as well and was kept",
+    "confirmed": "first step checked: the global start agreed with its solution, which was kept without a retry",
     "no_start": "no global start could be found (too few points, low RANSAC fitness)",
     "off": "recovery switched off: detected and counted only",
 }

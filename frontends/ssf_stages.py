@@ -267,8 +267,10 @@ class MotionRecoveryStage:
     ``flow_to_pose`` run again from it (the network sees the new prior too), and the
     solution that explains more of scan k is kept (``AlignmentEvidence``), with the motion
     models' state of that solution. ``stats["recovery"]``: ``faults`` (cues, empty when
-    good), ``outcome`` (None, ``recovered``, ``kept``, ``no_start``, ``off``), evidence
-    before/after, the global start's stats; ``summarize_fallbacks`` counts them."""
+    good), ``outcome`` (None, ``recovered``, ``kept``, ``confirmed``, ``no_start``, ``off``),
+    evidence before/after, the global start's stats and how far it lies from the step's
+    solution; ``summarize_fallbacks`` counts them. A first step (cue ``first_step`` alone)
+    whose global start agrees with its solution is ``confirmed`` without the retry."""
 
     name = "recovery"
     measures = True
@@ -299,8 +301,8 @@ class MotionRecoveryStage:
         elif not self.options.enabled:
             record["outcome"] = "off"
         else:
-            record.update(self._recover(state))
-            if record["outcome"] in ("recovered", "kept"):  # kept: the global start confirmed it
+            record.update(self._recover(state, record["faults"]))
+            if record["outcome"] in ("recovered", "kept", "confirmed"):  # kept, confirmed: the start agreed
                 self.detector.remember(self._evidence(state))
         state.stats["recovery"] = record
 
@@ -317,14 +319,20 @@ class MotionRecoveryStage:
             dynamic_share=None if state.static is None else float(np.mean(~state.static)),
             prior_rotation_rad=rot, prior_translation_m=trans)
 
-    def _recover(self, state: PairState) -> dict:
-        from flowslam.registration.recovery import AlignmentEvidence, global_start
+    def _recover(self, state: PairState, faults: list[str]) -> dict:
+        """Global start, then (unless it confirms a first step: :meth:`_confirms`) the retry
+        from it; the outcome and its record (module doc of :mod:`flowslam.registration.recovery`)."""
+        from flowslam.registration.recovery import AlignmentEvidence, global_start, prior_disagreement
 
         c = self.options
         T_start, start_stats = global_start(self._scan_features(state.frame), self._scan_features(state.prev),
                                             self.registration, c.global_start.min_fitness)
         if T_start is None:
             return {"outcome": "no_start", "global_start": start_stats}
+        rot, trans = prior_disagreement(T_start, state.estimate.T_prev_curr)
+        apart = {"start_apart_m": trans, "start_apart_deg": float(np.rad2deg(rot))}
+        if self._confirms(faults, trans, rot):
+            return {"outcome": "confirmed", "global_start": start_stats, **apart}
         evidence = AlignmentEvidence(state.frame.points, state.prev.points, c.evidence_voxel_m,
                                      c.evidence_distance_m, c.evidence_max_range_m)
         first_state = self._motion_models()
@@ -333,12 +341,21 @@ class MotionRecoveryStage:
             stage.run(trial)
         self.flow_to_pose.rerun(trial)
         before, after = evidence(state.estimate.T_prev_curr), evidence(trial.estimate.T_prev_curr)
-        record = {"evidence_before": before, "evidence_after": after, "global_start": start_stats}
+        record = {"evidence_before": before, "evidence_after": after, "global_start": start_stats, **apart}
         if self._better(after, before, trial.estimate.fallback, state.estimate.fallback):
             state.adopt(trial)
             return dict(record, outcome="recovered")
         restore_motion_models(first_state)
         return dict(record, outcome="kept")
+
+    def _confirms(self, faults: list[str], apart_m: float, apart_rad: float) -> bool:
+        """Whether the global start confirms the step's own solution (it lies ``apart_m`` /
+        ``apart_rad`` from it): the step's only cue is ``first_step`` (a check, not a sign of a
+        fault) and the start is within ``confirm_translation_m`` and ``confirm_rotation_deg``.
+        The retry would start where the solution already is, so it is not run."""
+        c = self.options
+        return (faults == ["first_step"] and apart_m < c.confirm_translation_m
+                and np.rad2deg(apart_rad) < c.confirm_rotation_deg)
 
     def _better(self, after: float, before: float, after_fell_back: bool, before_fell_back: bool) -> bool:
         """The retry wins with more evidence by ``min_gain``, or, as a measurement against a

@@ -171,6 +171,16 @@ def fast_start(tmp_path_factory):
     return root / "seq"
 
 
+@pytest.fixture(scope="module")
+def town(tmp_path_factory):
+    """4 frames at 10 Hz of the static town on its default path (hdl64 at 1024 columns)."""
+    from flowslam.simulation import simulate
+
+    root = tmp_path_factory.mktemp("town")
+    simulate(root / "seq", preset="static", frames=4, seed=9, sensor="hdl64", columns=1024)
+    return root / "seq"
+
+
 def _run_ssf(sequence, out, recovery: bool, objects: bool = True, first_step: bool | None = False, **options):
     """``run_sequence`` of ``ssf`` (odometry backend): per-step (m, deg) errors and run.json
     (``first_step`` None: the default of ``check_first_step``; ``options``: more config keys)."""
@@ -212,7 +222,7 @@ def test_first_step_check_reinitialises_the_first_step_only(sharp_turns, tmp_pat
     assert worst_m < STEP_LIMIT_M and worst_deg < STEP_LIMIT_DEG, errors
     faults = run["fallbacks"]["motion_faults"]
     assert faults["by_cue"]["first_step"] == 1 and faults["checked"] == 11
-    assert set(faults["by_outcome"]) <= {"kept", "recovered"}
+    assert set(faults["by_outcome"]) <= {"kept", "recovered", "confirmed"}
 
 
 def test_sharp_turns_with_recovery_every_step_within_10_cm_and_1_deg(sharp_turns, tmp_path, one_torch_thread):
@@ -238,3 +248,17 @@ def test_a_sequence_that_starts_at_speed_is_caught_at_its_first_step(fast_start,
     assert worst_m < STEP_LIMIT_M and worst_deg < STEP_LIMIT_DEG, errors
     faults = run["fallbacks"]["motion_faults"]
     assert faults["by_cue"]["first_step"] == 1 and faults["by_outcome"].get("recovered", 0) >= 1
+
+
+def test_a_first_step_the_global_start_confirms_is_kept_without_a_retry(town, tmp_path, one_torch_thread):
+    # the default: the global start lands within 0.1 m / 0.5 deg of the first step's own
+    # solution, which is kept as it is (the stages are not run again)
+    errors, run = _run_ssf(town, tmp_path / "confirm", recovery=True, objects=False, first_step=None)
+    assert run["fallbacks"]["motion_faults"]["by_outcome"] == {"confirmed": 1}
+    assert np.max(errors, axis=0)[0] < STEP_LIMIT_M, errors
+    # confirmation off: the retry runs, its solution explains the scans no better, the
+    # first one is kept: the same trajectory, which the confirmation got without the retry
+    again, run = _run_ssf(town, tmp_path / "retry", recovery=True, objects=False, first_step=None,
+                          **{"ssf.recovery.confirm_translation_m": 0.0})
+    assert run["fallbacks"]["motion_faults"]["by_outcome"] == {"kept": 1}
+    assert again == errors

@@ -716,10 +716,19 @@ class MotionRecoveryConfig(StrictModel):
     it: a sequence that starts at speed is caught here before its first step becomes the
     next prior (stop 48: weights that stayed 2.9 m off on the first steps of the sharp-turn
     sequence end within 4 mm with it; stop 57: the shipped weights left a 10 Hz start with
-    1.5 m and 8 deg in its first step 0.82 m / 3.5 deg off, unflagged). Costs one
-    re-initialisation per sequence: 0.6-1.0 s on a KITTI 64-beam pair (FPFH features of both
-    scans at ``global_start.voxel_size_m`` and RANSAC ~0.4 s, the stages run again; 1.7-2.1 s
+    1.5 m and 8 deg in its first step 0.82 m / 3.5 deg off, unflagged). Costs one global
+    start per sequence (FPFH features of both scans at ``global_start.voxel_size_m`` and
+    RANSAC: ~0.3 s on a KITTI 64-beam pair) and, unless the start confirms the step's own
+    solution (``confirm_translation_m``), the stages run again (~0.3 s more; 1.7-2.1 s in all
     with the 0.5 m voxel of stops 48-56, when it was off by default)."""
+    confirm_translation_m: float = Field(0.1, ge=0)
+    """A step whose only cue is ``first_step`` keeps its own solution without running the
+    stages again when the global start lies within this translation ..."""
+    confirm_rotation_deg: float = Field(0.5, ge=0)
+    """... and this rotation of it (outcome ``confirmed``; the global start alone is ~0.4 s
+    of the check on a KITTI pair, the stages run again the rest). The global start lands 1-6 cm
+    and 0.02-0.11 deg from the reference on KITTI pairs; a start at speed that the zero prior
+    held back left its solution 0.5-2.9 m away (stops 48, 57). 0: always run them again."""
     fitness_drop: float = Field(0.8, ge=0, le=1)
     """Cue ``fitness_drop``: the refinement's fitness is below this times the median fitness
     of the last good steps."""

@@ -17,7 +17,8 @@ is never used here. What shows a faulty step is the registration's own evidence:
   of scan k's points that land on scan k-1 under a candidate ``T_prev_curr``; the same
   measure on the same points judges the first solution and the re-initialised one;
 - **a global start** (:func:`global_start`): FPFH + RANSAC (+ ICP) of scan k onto scan
-  k-1 (:mod:`flowslam.registration.global_registration`), which needs no prior.
+  k-1 (:mod:`flowslam.registration.global_registration`), which needs no prior; where it
+  lands on a first step's own solution it confirms it, and nothing is re-run.
 
 Frames: ``T_prev_curr`` maps scan k into sensor frame k-1 (4x4, m); angles in radians.
 The options are :class:`flowslam.config.ssf.MotionRecoveryConfig`.
