@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import csv
 import logging
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -135,13 +136,16 @@ def moving_objects(
 class MovingObjectsLog:
     """Accumulates :class:`MovingObject` rows over a run; writes them as CSV in the world frame."""
 
-    def __init__(self, min_points: int = 1, min_speed: float = 0.0, tracker=None):
+    def __init__(self, min_points: int = 1, min_speed: float = 0.0, tracker=None, min_track_scans: int = 1):
         """``tracker``: an :class:`flowslam.object_tracks.ObjectTracker` (default: its
-        defaults) that gives the objects of successive scans their track ids."""
+        defaults) that gives the objects of successive scans their track ids;
+        ``min_track_scans``: :meth:`rows` (the CSV, the tracks) leaves out the objects of
+        tracks seen in fewer scans (``objects`` keeps every one)."""
         from flowslam.object_tracks import ObjectTracker
 
         self.min_points = min_points
         self.min_speed = min_speed
+        self.min_track_scans = min_track_scans
         self.tracker = tracker or ObjectTracker()
         self.objects: list[MovingObject] = []
         self._last: tuple[int, float] | None = None
@@ -180,10 +184,14 @@ class MovingObjectsLog:
     ) -> list[tuple]:
         """CSV rows (``CSV_HEADER`` order), world frame via ``poses`` (see
         :func:`flowslam.mapping.poses_by_index`); ``poses=None`` keeps each scan's sensor
-        frame. Objects of scans without a pose are left out (logged)."""
+        frame. Objects of scans without a pose are left out (logged), and those of tracks
+        seen in fewer than ``min_track_scans`` scans (untracked objects stay)."""
         lookup = None if poses is None else poses_by_index(poses, indices)
+        seen = Counter(ob.track_id for ob in self.objects)
         out, missing = [], 0
         for ob in self.objects:
+            if ob.track_id >= 0 and seen[ob.track_id] < self.min_track_scans:
+                continue
             if lookup is None:
                 c, v = ob.centroid, ob.velocity
             elif ob.frame in lookup:

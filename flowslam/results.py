@@ -26,7 +26,8 @@ the trajectory of the frames it processed):
 - ``graph.g2o``: the factor graph of a graph backend (``isam2``) with the final poses
   (see ``flowslam.graph_export``).
 - ``moving_objects.csv``: per frame, each moving instance's centroid, velocity, track id and extent
-  (world frame; only frontends that give instance ids).
+  (world frame; only frontends that give instance ids; objects of tracks seen in at least
+  ``output.min_track_scans`` scans).
 """
 
 from __future__ import annotations

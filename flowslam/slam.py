@@ -161,7 +161,7 @@ class Slam:
             out = self.config.output
             if out.static_map:
                 self.map = StaticMapBuilder(out.map_voxel_size, out.map_points_per_frame)
-            self.objects = MovingObjectsLog()
+            self.objects = MovingObjectsLog(min_track_scans=out.min_track_scans)
         self.listeners = [sink.on_output for sink in (self.map, self.objects) if sink is not None] + list(listeners)
         self.step_listeners = list(step_listeners)
         self._result = RunResult()

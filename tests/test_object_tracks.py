@@ -44,6 +44,22 @@ def test_a_longer_gap_ends_the_track():
     assert ids == [0, 0, 0, 1, 1]
 
 
+def test_the_log_leaves_out_the_objects_of_tracks_seen_in_fewer_than_min_track_scans(tmp_path):
+    log = MovingObjectsLog(min_track_scans=2)
+    for k in range(3):  # a car seen in three scans; a blip far from it in scan 1 only
+        objects = [_car(k, instance_id=1)] + ([_object(k, (40.0, 20.0, 0.0), (0.0, 1.0, 0.0), 2)] if k == 1 else [])
+        log.tracker.assign(objects, k, k * DT, np.eye(4))
+        log.add(objects)
+    assert len(log.objects) == 4  # every object is kept in memory
+    rows = log.rows()
+    assert [r[2] for r in rows] == [1, 1, 1] and len({r[11] for r in rows}) == 1
+    assert list(log.tracks(np.stack([np.eye(4)] * 3))) == [rows[0][11]]
+    lines = log.write_csv(tmp_path / "objects.csv").read_text().splitlines()
+    assert len(lines) == 1 + 3
+    log.min_track_scans = 1
+    assert len(log.rows()) == 4
+
+
 def test_two_objects_keep_their_own_ids_in_any_order():
     tracker = ObjectTracker(gate_m=2.0)
     rng = np.random.default_rng(0)
