@@ -725,8 +725,8 @@ class MotionRecoveryConfig(StrictModel):
     """A step whose only cue is ``first_step`` keeps its own solution without running the
     stages again when the global start lies within this translation ..."""
     confirm_rotation_deg: float = Field(0.5, ge=0)
-    """... and this rotation of it (outcome ``confirmed``; the global start alone is ~0.4 s
-    of the check on a KITTI pair, the stages run again the rest). The global start lands 1-6 cm
+    """... and this rotation of it (outcome ``confirmed``; on a KITTI pair the check then
+    takes ~0.3 s instead of ~0.6 s, stop 58). The global start lands 1-6 cm
     and 0.02-0.11 deg from the reference on KITTI pairs; a start at speed that the zero prior
     held back left its solution 0.5-2.9 m away (stops 48, 57). 0: always run them again."""
     fitness_drop: float = Field(0.8, ge=0, le=1)
