@@ -13,8 +13,9 @@ memory and per-frame time, then a SIGTERM at a random frame and a restart from s
    (``run_sequence``), recording after every frame its wall and CPU time (the CPU time
    of the process, all threads: less sensitive than wall time to a machine shared with
    other jobs), the wall time of each stage (frontend, backend update, loop closer,
-   static map; the ``Slam``'s parts wrapped by this tool) and the process's resident
-   set size (``/proc/self/statm``); every 100 frames the bytes each part holds (static
+   static map; the ``Slam``'s parts wrapped by this tool), the process's resident
+   set size (``/proc/self/statm``) and the memory glibc's malloc hands out (``mallinfo2``;
+   RSS also holds the free heap glibc keeps); every 100 frames the bytes each part holds (static
    map store, loop closer in memory and spilled, backend scans).
 3. Runs ``flowslam run`` on it as a subprocess, sends SIGTERM at a random frame (seeded),
    checks the partial run folder (exit 143, ``run.json`` says why, trajectory of the
@@ -29,6 +30,7 @@ into ``--out``; prints a summary. Figures are of this machine; compare runs on o
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import random
@@ -39,7 +41,11 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
+from flowslam.threads import set_thread_defaults
+
+set_thread_defaults()  # as `flowslam run` does, before numpy, torch and Open3D load
+
+import numpy as np  # noqa: E402
 
 PAGE = os.sysconf("SC_PAGE_SIZE")
 
@@ -62,6 +68,35 @@ def simulate_sequence(frames: int, columns: int, seed: int, cache_dir: Path | No
     path = Path(out.strip().splitlines()[-1])
     print(f"sequence {path} ({time.perf_counter() - t0:.0f} s to make or find)", flush=True)
     return path
+
+
+def heap_in_use_mb() -> float | None:
+    """Bytes glibc's malloc hands out now, every arena (``mallinfo2``: ``uordblks`` +
+    ``hblkhd``), in MB; None without glibc. Unlike RSS, it leaves out the free heap that
+    glibc keeps between the ``ssf`` network's heap trims, so it shows what the run holds."""
+    info = _mallinfo2()
+    return None if info is None else (info.uordblks + info.hblkhd) / 1e6
+
+
+@functools.lru_cache(maxsize=1)
+def _mallinfo2_call():
+    import ctypes
+
+    class MallInfo2(ctypes.Structure):
+        _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                         "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+    try:
+        fn = ctypes.CDLL("libc.so.6").mallinfo2
+    except (OSError, AttributeError):
+        return None
+    fn.restype = MallInfo2
+    return fn
+
+
+def _mallinfo2():
+    fn = _mallinfo2_call()
+    return None if fn is None else fn()
 
 
 STAGES = ("frontend", "backend", "loops", "map")
@@ -147,7 +182,7 @@ def run_in_process(sequence: Path, frontend: str, out: Path, max_frames: int | N
 
     overrides = dict(options or {}, **({"dataset.max_frames": max_frames} if max_frames else {}))
     cfg = load_config(frontend=frontend, backend="isam2", variant="s-loam", output_dir=str(out / "runs"), **overrides)
-    seconds, cpu, rss, stages, components = [], [], [], {stage: [] for stage in STAGES}, []
+    seconds, cpu, rss, heap, stages, components = [], [], [], [], {stage: [] for stage in STAGES}, []
     timer = StageTimer()
     t0 = time.perf_counter()
     last_cpu = [time.process_time()]
@@ -158,19 +193,21 @@ def run_in_process(sequence: Path, frontend: str, out: Path, max_frames: int | N
         cpu.append(now - last_cpu[0])
         last_cpu[0] = now
         rss.append(rss_mb())
+        heap.append(heap_in_use_mb())
         for stage, t in timer.take().items():
             stages[stage].append(t)
         if k % 100 == 0:
             components.append(dict(frame=k, rss_mb=rss[-1], **timer.component_bytes()))
         if k % 500 == 0:
-            print(f"  frame {k}: {s * 1e3:.0f} ms, RSS {rss[-1]:.0f} MB", flush=True)
+            in_use = "" if heap[-1] is None else f", malloc in use {heap[-1]:.0f} MB"
+            print(f"  frame {k}: {s * 1e3:.0f} ms, RSS {rss[-1]:.0f} MB{in_use}", flush=True)
 
     with timer:
         outcome = run_sequence(sequence, cfg, on_frame=on_frame, tag=f"soak_{frontend}_full")
     outcome.raise_for_error()
     backend_stats = getattr(timer.slam.backend, "stats", None) if timer.slam is not None else None
     return dict(run_dir=str(outcome.run_dir), wall_s=time.perf_counter() - t0, seconds=seconds, cpu_seconds=cpu,
-                rss_mb=rss, stage_seconds=stages, components=components, metrics=outcome.metrics,
+                rss_mb=rss, heap_in_use_mb=heap, stage_seconds=stages, components=components, metrics=outcome.metrics,
                 loops=len(outcome.result.loops), loop_frames=[lc.j for lc in outcome.result.loops],
                 backend=_backend_summary(backend_stats))
 
@@ -239,7 +276,8 @@ def _stop_at(proc: subprocess.Popen, out: Path, target: int, margin: float) -> t
 
 def summarize(full: dict, warmup: int, window: int) -> dict:
     """Medians over the ``window`` frames after ``warmup`` ("first") and the last
-    ``window`` frames ("last"); RSS after warm-up, at the end, its peak and its slope."""
+    ``window`` frames ("last"); RSS after warm-up, at the end, its peak and its slope; the
+    same for the memory malloc hands out, where glibc tells it."""
     s, rss = np.asarray(full["seconds"]) * 1e3, np.asarray(full["rss_mb"])
     cpu = np.asarray(full["cpu_seconds"]) * 1e3
     n = len(s)
@@ -251,6 +289,13 @@ def summarize(full: dict, warmup: int, window: int) -> dict:
     half = (w + n) // 2
     slope_2nd = np.polyfit(np.arange(half, n), rss[half:], 1)[0] if n - half > 2 else float("nan")
     stages = {stage: np.asarray(v) * 1e3 for stage, v in full["stage_seconds"].items()}
+    heap = full.get("heap_in_use_mb") or []
+    heap = np.asarray(heap, float) if heap and heap[0] is not None else None
+    heap_fields = {} if heap is None else dict(
+        heap_in_use_mb_after_warmup=float(heap[w]), heap_in_use_mb_end=float(heap[-1]),
+        heap_in_use_kb_per_frame_after_warmup=float(np.polyfit(np.arange(w, n), heap[w:], 1)[0] * 1e3)
+        if n - w > 2 else float("nan"),
+    )
     return dict(
         frames=n, wall_s=full["wall_s"], loops=full["loops"], loop_frames=full.get("loop_frames"),
         window_frames=win, first_frames=[w, w + win], last_frames=[n - win, n],
@@ -260,7 +305,7 @@ def summarize(full: dict, warmup: int, window: int) -> dict:
         stage_ms_last={k: float(np.median(v[last])) for k, v in stages.items() if len(v) == n},
         rss_mb_after_warmup=float(rss[w]), rss_mb_end=float(rss[-1]), rss_mb_peak=float(rss.max()),
         rss_kb_per_frame_after_warmup=float(slope * 1e3), rss_kb_per_frame_second_half=float(slope_2nd * 1e3),
-        backend=full.get("backend"),
+        **heap_fields, backend=full.get("backend"),
     )
 
 
@@ -272,6 +317,8 @@ def plot(full: dict, path: Path, title: str) -> None:
 
     fig, (a, b, c) = plt.subplots(3, 1, figsize=(8, 8.5), sharex=True)
     a.plot(full["rss_mb"], lw=1, label="RSS")
+    if full.get("heap_in_use_mb") and full["heap_in_use_mb"][0] is not None:
+        a.plot(full["heap_in_use_mb"], lw=1, label="malloc in use")
     comps = full.get("components") or []
     if comps:
         frames = [r["frame"] for r in comps]
