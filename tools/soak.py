@@ -252,7 +252,8 @@ def sigterm_and_restart(sequence: Path, frontend: str, out: Path, n_frames: int,
     b = read_trajectory(restart_out / "latest" / "trajectory_tum.txt")
     diff = np.linalg.norm(a.positions - b.positions, axis=1) if len(a) == len(b) else None
     return dict(target_frame=target, signal_margin=margin, exit_code=return_code,
-                stderr_tail=stderr.strip().splitlines()[-1:], run_json_error=info["error"], complete=info["complete"], frames_processed=k,
+                stderr_tail=stderr.strip().splitlines()[-1:], run_json_error=info["error"], complete=info["complete"],
+                frames_processed=k,
                 restart_frames=len(b), same_length=len(a) == len(b),
                 max_position_difference_m=None if diff is None else float(diff.max()))
 
@@ -405,7 +406,7 @@ def main() -> None:
         report["sigterm"] = sigterm_and_restart(sequence, args.frontend, args.out, len(full["seconds"]), args.seed)
         print(json.dumps(report["sigterm"], indent=2), flush=True)
     per_frame = dict(ms=[s * 1e3 for s in full["seconds"]], cpu_ms=[s * 1e3 for s in full["cpu_seconds"]],
-                     rss_mb=full["rss_mb"],
+                     rss_mb=full["rss_mb"], heap_in_use_mb=full["heap_in_use_mb"],
                      stage_ms={k: [s * 1e3 for s in v] for k, v in full["stage_seconds"].items()})
     (args.out / "soak.json").write_text(json.dumps(dict(report, per_frame=per_frame), indent=1) + "\n")
     print(f"soak.json and soak.png in {args.out}")
