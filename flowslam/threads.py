@@ -28,18 +28,26 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["set_thread_defaults"]
+__all__ = ["set_thread_defaults", "set_cache_defaults"]
 
-DEFAULTS = {
-    "OMP_WAIT_POLICY": "PASSIVE",
-    "OPENBLAS_NUM_THREADS": "1",
-    "ONEDNN_PRIMITIVE_CACHE_CAPACITY": "128",
-    "LRU_CACHE_CAPACITY": "128",
-}
+CACHE_DEFAULTS = {"ONEDNN_PRIMITIVE_CACHE_CAPACITY": "128", "LRU_CACHE_CAPACITY": "128"}
+"""The oneDNN cache capacities; read when torch runs its first oneDNN kernel, not when it loads."""
+DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE", "OPENBLAS_NUM_THREADS": "1", **CACHE_DEFAULTS}
 
 
 def set_thread_defaults() -> dict[str, str]:
     """Set the defaults above where the environment has none; returns the values in effect."""
-    for name, value in DEFAULTS.items():
+    return _set_defaults(DEFAULTS)
+
+
+def set_cache_defaults() -> dict[str, str]:
+    """Only the cache capacities: what the ``ssf`` network stage calls when it is built, so
+    that a program that loaded torch itself gets them too, unless oneDNN already ran there
+    (then its caches keep the capacities they started with)."""
+    return _set_defaults(CACHE_DEFAULTS)
+
+
+def _set_defaults(defaults: dict[str, str]) -> dict[str, str]:
+    for name, value in defaults.items():
         os.environ.setdefault(name, value)
-    return {name: os.environ[name] for name in DEFAULTS}
+    return {name: os.environ[name] for name in defaults}

@@ -126,6 +126,9 @@ class NetworkStage:
     name = "network"
 
     def __init__(self, config: SsfConfig):
+        from flowslam.threads import set_cache_defaults
+
+        set_cache_defaults()  # before torch's first oneDNN kernel (flowslam.threads)
         import torch
 
         from flowslam.sceneflow.network.device import inference_device

@@ -5,7 +5,7 @@ import os
 import subprocess
 import sys
 
-from flowslam.threads import DEFAULTS, set_thread_defaults
+from flowslam.threads import CACHE_DEFAULTS, DEFAULTS, set_thread_defaults
 
 
 def test_defaults_fill_only_what_the_user_left_unset(monkeypatch):
@@ -84,3 +84,17 @@ def test_the_onednn_cache_defaults_stop_the_memory_growing_with_new_shapes():
     unbounded = _cache_growth_mb({"ONEDNN_PRIMITIVE_CACHE_CAPACITY": "1024", "LRU_CACHE_CAPACITY": "1024"})
     assert bounded < 10.0
     assert unbounded > 40.0  # what the defaults prevent (93 MB measured)
+
+
+def test_the_network_stage_sets_the_cache_defaults_in_a_program_that_loaded_torch_first():
+    """A library user's program (torch imported, no ``set_thread_defaults``) gets the cache
+    capacities when it builds the ``ssf`` frontend, before the network's first kernel."""
+    code = ("import json, os, torch\n"
+            "from flowslam.config import SsfConfig\n"
+            "from flowslam.frontends.ssf import SsfFrontend\n"
+            "SsfFrontend(SsfConfig())\n"
+            f"print(json.dumps({{n: os.environ.get(n) for n in {list(CACHE_DEFAULTS)!r}}}))")
+    env = {k: v for k, v in os.environ.items() if k not in DEFAULTS}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == CACHE_DEFAULTS
