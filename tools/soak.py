@@ -278,7 +278,7 @@ def _stop_at(proc: subprocess.Popen, out: Path, target: int, margin: float) -> t
 def summarize(full: dict, warmup: int, window: int) -> dict:
     """Medians over the ``window`` frames after ``warmup`` ("first") and the last
     ``window`` frames ("last"); RSS after warm-up, at the end, its peak and its slope; the
-    same for the memory malloc hands out, where glibc tells it."""
+    memory malloc hands out after warm-up, at the end and its slope, where glibc tells it."""
     s, rss = np.asarray(full["seconds"]) * 1e3, np.asarray(full["rss_mb"])
     cpu = np.asarray(full["cpu_seconds"]) * 1e3
     n = len(s)
