@@ -25,51 +25,46 @@ def test_the_command_sets_them_before_it_runs():
             "except SystemExit:\n"
             "    pass\n"
             f"print(json.dumps({{n: os.environ.get(n) for n in {list(DEFAULTS)!r}}}))")
+    assert _fresh_process_json(code, timeout=120) == DEFAULTS
+
+
+def _fresh_process_json(code: str, env_overrides: dict[str, str] | None = None, timeout: float = 300):
+    """The JSON that ``code`` prints last, run in a new Python process whose environment has
+    none of the defaults (plus ``env_overrides``)."""
     env = {k: v for k, v in os.environ.items() if k not in DEFAULTS}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    env.update(env_overrides or {})
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=timeout)
     assert out.returncode == 0, out.stderr
-    assert json.loads(out.stdout.strip().splitlines()[-1]) == DEFAULTS
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 CACHE_GROWTH = """
-import ctypes, json, sys
+import json, sys
 from flowslam.threads import set_thread_defaults
 set_thread_defaults()  # before torch loads, as the command does
 import torch
 from torch import nn
 from flowslam.sceneflow.network.backbone import RELU, fusable, linear
+from flowslam.sceneflow.network.model import malloc_in_use_bytes
 
-class MallInfo2(ctypes.Structure):
-    _fields_ = [(n, ctypes.c_size_t) for n in
-                ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks",
-                 "keepcost")]
-
-libc = ctypes.CDLL("libc.so.6")
-if not hasattr(libc, "mallinfo2"):
-    print(json.dumps(None)); sys.exit()
-libc.mallinfo2.restype = MallInfo2
 torch.set_num_threads(1)
 layer = nn.Linear(9, 16)
 with torch.inference_mode():
     x = torch.randn(20300, 9)
-    if not fusable(x):
+    if malloc_in_use_bytes() is None or not fusable(x):
         print(json.dumps(None)); sys.exit()
     for i in range(300):  # the pillar layer's shape: a new row count every call, as every scan brings
         if i == 150:
-            start = libc.mallinfo2().uordblks
+            start = malloc_in_use_bytes()
         linear(x[:20000 + i], layer, RELU)
-print(json.dumps((libc.mallinfo2().uordblks - start) / 1e6))
+print(json.dumps((malloc_in_use_bytes() - start) / 1e6))
 """
 
 
 def _cache_growth_mb(env_overrides: dict[str, str]) -> float | None:
     """Memory in use (MB, glibc) that 150 fused oneDNN linears of new shapes leave behind
     after 150 others, in a fresh process; None where glibc or the fused kernels are missing."""
-    env = {k: v for k, v in os.environ.items() if k not in DEFAULTS}
-    env.update(env_overrides)
-    out = subprocess.run([sys.executable, "-c", CACHE_GROWTH], env=env, capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return _fresh_process_json(CACHE_GROWTH, env_overrides)
 
 
 def test_the_onednn_cache_defaults_stop_the_memory_growing_with_new_shapes():
@@ -94,7 +89,4 @@ def test_the_network_stage_sets_the_cache_defaults_in_a_program_that_loaded_torc
             "from flowslam.frontends.ssf import SsfFrontend\n"
             "SsfFrontend(SsfConfig())\n"
             f"print(json.dumps({{n: os.environ.get(n) for n in {list(CACHE_DEFAULTS)!r}}}))")
-    env = {k: v for k, v in os.environ.items() if k not in DEFAULTS}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr
-    assert json.loads(out.stdout.strip().splitlines()[-1]) == CACHE_DEFAULTS
+    assert _fresh_process_json(code) == CACHE_DEFAULTS

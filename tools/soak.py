@@ -30,7 +30,6 @@ into ``--out``; prints a summary. Figures are of this machine; compare runs on o
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import random
@@ -71,32 +70,12 @@ def simulate_sequence(frames: int, columns: int, seed: int, cache_dir: Path | No
 
 
 def heap_in_use_mb() -> float | None:
-    """Bytes glibc's malloc hands out now, every arena (``mallinfo2``: ``uordblks`` +
-    ``hblkhd``), in MB; None without glibc. Unlike RSS, it leaves out the free heap that
-    glibc keeps between the ``ssf`` network's heap trims, so it shows what the run holds."""
-    info = _mallinfo2()
-    return None if info is None else (info.uordblks + info.hblkhd) / 1e6
+    """Memory glibc's malloc hands out now (MB; ``malloc_in_use_bytes``), None without glibc:
+    what the run holds, without the free heap that RSS also counts."""
+    from flowslam.sceneflow.network.model import malloc_in_use_bytes
 
-
-@functools.lru_cache(maxsize=1)
-def _mallinfo2_call():
-    import ctypes
-
-    class MallInfo2(ctypes.Structure):
-        _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
-                                                         "fsmblks", "uordblks", "fordblks", "keepcost")]
-
-    try:
-        fn = ctypes.CDLL("libc.so.6").mallinfo2
-    except (OSError, AttributeError):
-        return None
-    fn.restype = MallInfo2
-    return fn
-
-
-def _mallinfo2():
-    fn = _mallinfo2_call()
-    return None if fn is None else fn()
+    in_use = malloc_in_use_bytes()
+    return None if in_use is None else in_use / 1e6
 
 
 STAGES = ("frontend", "backend", "loops", "map")
@@ -285,17 +264,13 @@ def summarize(full: dict, warmup: int, window: int) -> dict:
     w = min(warmup, n // 4)
     win = max(min(window, (n - w) // 2), 1)
     first, last = slice(w, w + win), slice(n - win, n)
-    after = rss[w:]
-    slope = np.polyfit(np.arange(w, n), after, 1)[0] if len(after) > 2 else float("nan")
     half = (w + n) // 2
-    slope_2nd = np.polyfit(np.arange(half, n), rss[half:], 1)[0] if n - half > 2 else float("nan")
     stages = {stage: np.asarray(v) * 1e3 for stage, v in full["stage_seconds"].items()}
     heap = full.get("heap_in_use_mb") or []
     heap = np.asarray(heap, float) if heap and heap[0] is not None else None
     heap_fields = {} if heap is None else dict(
         heap_in_use_mb_after_warmup=float(heap[w]), heap_in_use_mb_end=float(heap[-1]),
-        heap_in_use_kb_per_frame_after_warmup=float(np.polyfit(np.arange(w, n), heap[w:], 1)[0] * 1e3)
-        if n - w > 2 else float("nan"),
+        heap_in_use_kb_per_frame_after_warmup=_slope(heap, w) * 1e3,
     )
     return dict(
         frames=n, wall_s=full["wall_s"], loops=full["loops"], loop_frames=full.get("loop_frames"),
@@ -305,9 +280,16 @@ def summarize(full: dict, warmup: int, window: int) -> dict:
         stage_ms_first={k: float(np.median(v[first])) for k, v in stages.items() if len(v) == n},
         stage_ms_last={k: float(np.median(v[last])) for k, v in stages.items() if len(v) == n},
         rss_mb_after_warmup=float(rss[w]), rss_mb_end=float(rss[-1]), rss_mb_peak=float(rss.max()),
-        rss_kb_per_frame_after_warmup=float(slope * 1e3), rss_kb_per_frame_second_half=float(slope_2nd * 1e3),
+        rss_kb_per_frame_after_warmup=_slope(rss, w) * 1e3, rss_kb_per_frame_second_half=_slope(rss, half) * 1e3,
         **heap_fields, backend=full.get("backend"),
     )
+
+
+def _slope(series: np.ndarray, start: int) -> float:
+    """Least-squares growth per frame of ``series`` from frame ``start`` on (NaN: too few)."""
+    if len(series) - start <= 2:
+        return float("nan")
+    return float(np.polyfit(np.arange(start, len(series)), series[start:], 1)[0])
 
 
 def plot(full: dict, path: Path, title: str) -> None:

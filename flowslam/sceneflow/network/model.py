@@ -60,8 +60,8 @@ COMPILED_PILLARS = True
 occupied pillars only (:mod:`flowslam.sceneflow.network.compiled_pillars`); False: torch."""
 
 __all__ = [
-    "ModelConfig", "SceneFlowNet", "full_flow", "tune_cpu_allocator", "release_free_heap", "default_cpu_threads", "OUTSIDE_LOGIT",
-    "PRESETS",
+    "ModelConfig", "SceneFlowNet", "full_flow", "tune_cpu_allocator", "release_free_heap", "malloc_in_use_bytes",
+    "default_cpu_threads", "OUTSIDE_LOGIT", "PRESETS",
 ]
 
 OUTSIDE_LOGIT = -20.0
@@ -384,6 +384,36 @@ def release_free_heap() -> bool:
     except AttributeError:  # a C library without malloc_trim
         return False
     return True
+
+
+def malloc_in_use_bytes() -> int | None:
+    """Bytes glibc's malloc hands out now, every arena, mmapped blocks included
+    (``mallinfo2``: ``uordblks`` + ``hblkhd``; glibc >= 2.33, Linux only), else None. Unlike
+    the resident set it leaves out the free heap that glibc keeps (between the trims of
+    :func:`release_free_heap`), so it shows what the process holds."""
+    fn = _mallinfo2()
+    if fn is None:
+        return None
+    info = fn()
+    return int(info.uordblks + info.hblkhd)
+
+
+@functools.lru_cache(maxsize=1)
+def _mallinfo2():
+    """glibc's ``mallinfo2`` with its result type, or None; set up once."""
+    import ctypes
+
+    libc = _glibc()
+    if libc is None or not hasattr(libc, "mallinfo2"):
+        return None
+
+    class MallInfo2(ctypes.Structure):
+        _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                         "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+    fn = libc.mallinfo2
+    fn.restype = MallInfo2
+    return fn
 
 
 def default_cpu_threads(shares_cores: bool = False) -> int | None:
