@@ -266,8 +266,7 @@ def summarize(full: dict, warmup: int, window: int) -> dict:
     first, last = slice(w, w + win), slice(n - win, n)
     half = (w + n) // 2
     stages = {stage: np.asarray(v) * 1e3 for stage, v in full["stage_seconds"].items()}
-    heap = full.get("heap_in_use_mb") or []
-    heap = np.asarray(heap, float) if heap and heap[0] is not None else None
+    heap = _heap_series(full)
     heap_fields = {} if heap is None else dict(
         heap_in_use_mb_after_warmup=float(heap[w]), heap_in_use_mb_end=float(heap[-1]),
         heap_in_use_kb_per_frame_after_warmup=_slope(heap, w) * 1e3,
@@ -285,6 +284,12 @@ def summarize(full: dict, warmup: int, window: int) -> dict:
     )
 
 
+def _heap_series(full: dict) -> np.ndarray | None:
+    """Malloc in use per frame (MB), None where the run could not ask glibc."""
+    heap = full.get("heap_in_use_mb") or []
+    return np.asarray(heap, float) if heap and heap[0] is not None else None
+
+
 def _slope(series: np.ndarray, start: int) -> float:
     """Least-squares growth per frame of ``series`` from frame ``start`` on (NaN: too few)."""
     if len(series) - start <= 2:
@@ -300,8 +305,9 @@ def plot(full: dict, path: Path, title: str) -> None:
 
     fig, (a, b, c) = plt.subplots(3, 1, figsize=(8, 8.5), sharex=True)
     a.plot(full["rss_mb"], lw=1, label="RSS")
-    if full.get("heap_in_use_mb") and full["heap_in_use_mb"][0] is not None:
-        a.plot(full["heap_in_use_mb"], lw=1, label="malloc in use")
+    heap = _heap_series(full)
+    if heap is not None:
+        a.plot(heap, lw=1, label="malloc in use")
     comps = full.get("components") or []
     if comps:
         frames = [r["frame"] for r in comps]
