@@ -15,7 +15,11 @@ when it exists). Then the calls are replayed ``--runs`` times and the script rep
   difference between their refined motions (m / deg).
 
     python tools/bench_static_refinement.py [SEQUENCE] [--runs 5] [--inputs /tmp/static_inputs.npz]
-                                             [--old /path/to/old_static.py]
+                                             [--old /path/to/old_static.py] [--set FIELD=VALUE ...]
+
+``--set`` gives the current code's calls ``ssf.refine`` options (``FlowRefinementConfig``
+fields, e.g. ``--set coarse_max_iterations=2``); the old code keeps its defaults, so
+``--old`` on a copy of the current ``static.py`` times an option against the default.
 
 Run with ``OPENBLAS_NUM_THREADS=1 OMP_WAIT_POLICY=PASSIVE`` like the CLI; the machine's
 load average is printed (on a shared machine the timings are upper bounds).
@@ -26,6 +30,7 @@ from __future__ import annotations
 import argparse
 import functools
 import importlib.util
+import json
 import os
 import statistics
 import sys
@@ -36,7 +41,7 @@ import numpy as np
 
 DATA = Path(os.environ.get("FLOWSLAM_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 ARGS = ("source", "flow", "static_mask", "target", "T_init")
-SUB_STEPS = ("_voxel_centroids", "_near_any", "_covariances", "_planar_points", "_icp", "_fitness", "_snap")
+SUB_STEPS = ("_voxel_centroids", "_target_centroids", "_near_any", "_covariances", "_planar_points", "_icp", "_fitness", "_snap")
 
 
 def record(sequence: Path, path: Path) -> list[tuple]:
@@ -78,7 +83,7 @@ def load_module(path: Path):
 def instrument(module, laps: dict[str, list[float]]) -> None:
     """Wrap the module's sub-step helpers so that every call adds its wall time (ms) to ``laps``.
 
-    ``_voxel_centroids`` runs twice per call: the first lap is the source's, the second the target's.
+    ``_voxel_centroids`` downsamples the source, ``_target_centroids`` the target;
     ``_planar_points`` includes ``_covariances``."""
     for name in SUB_STEPS:
         fn = getattr(module, name, None)
@@ -98,9 +103,6 @@ def instrument(module, laps: dict[str, list[float]]) -> None:
 def per_step_medians(laps: dict[str, list[float]], totals: list[float]) -> dict[str, float]:
     """Median ms per sub-step over the calls, ``other`` = the median of what the steps leave."""
     steps = dict(laps)
-    if "_voxel_centroids" in steps:
-        v = steps.pop("_voxel_centroids")
-        steps["_voxel_centroids (source)"], steps["_voxel_centroids (target)"] = v[0::2], v[1::2]
     if "_planar_points" in steps and "_covariances" in steps:  # the eigen part alone
         steps["_planar_points"] = [a - b for a, b in zip(steps["_planar_points"], steps["_covariances"])]
     per_call = [sum(v[i] for v in steps.values() if len(v) == len(totals)) for i in range(len(totals))]
@@ -124,6 +126,8 @@ def main() -> None:
     ap.add_argument("--inputs", type=Path, default=Path("/tmp/static_refinement_inputs.npz"),
                     help="recorded inputs (written on the first run, reused later)")
     ap.add_argument("--old", type=Path, default=None, help="an earlier static.py, timed alternating with the current")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="an ssf.refine option for the current code's calls (JSON value)")
     args = ap.parse_args()
 
     import flowslam.sceneflow.refinement.static as current
@@ -132,6 +136,12 @@ def main() -> None:
     modules = {"current": current}
     if args.old is not None:
         modules = {"old": load_module(args.old), "current": current}
+    options = {name: None for name in modules}
+    if args.set:
+        from flowslam.config.ssf import FlowRefinementConfig
+
+        pairs = dict(pair.partition("=")[::2] for pair in args.set)
+        options["current"] = FlowRefinementConfig(**{k: json.loads(v) for k, v in pairs.items()})
     laps: dict[str, dict[str, list[float]]] = {name: {} for name in modules}
     for name, module in modules.items():
         instrument(module, laps[name])
@@ -143,7 +153,7 @@ def main() -> None:
             results = {}
             for name in order:
                 t0 = time.perf_counter()
-                results[name] = modules[name].refine_static_flow(*call)
+                results[name] = modules[name].refine_static_flow(*call, options[name])
                 totals[name].append(1e3 * (time.perf_counter() - t0))
             if "old" in results:
                 dt, dr = pose_difference(results["old"].T_curr_prev, results["current"].T_curr_prev)

@@ -256,8 +256,10 @@ def _stop_at(proc: subprocess.Popen, out: Path, target: int, margin: float) -> t
 
 def summarize(full: dict, warmup: int, window: int) -> dict:
     """Medians over the ``window`` frames after ``warmup`` ("first") and the last
-    ``window`` frames ("last"); RSS after warm-up, at the end, its peak and its slope; the
-    memory malloc hands out after warm-up, at the end and its slope, where glibc tells it."""
+    ``window`` frames ("last"); RSS after warm-up, at the end, its peak and its slope, the
+    slopes of its floor and ceiling (minima and maxima per ``TRIM_WINDOW`` frames) and the
+    ceiling per 100 frames; the memory malloc hands out after warm-up, at the end and its
+    slope, where glibc tells it."""
     s, rss = np.asarray(full["seconds"]) * 1e3, np.asarray(full["rss_mb"])
     cpu = np.asarray(full["cpu_seconds"]) * 1e3
     n = len(s)
@@ -271,6 +273,8 @@ def summarize(full: dict, warmup: int, window: int) -> dict:
         heap_in_use_mb_after_warmup=float(heap[w]), heap_in_use_mb_end=float(heap[-1]),
         heap_in_use_kb_per_frame_after_warmup=_slope(heap, w) * 1e3,
     )
+    low, high = _window_extremes(rss, TRIM_WINDOW)
+    per_100 = 100 // TRIM_WINDOW
     return dict(
         frames=n, wall_s=full["wall_s"], loops=full["loops"], loop_frames=full.get("loop_frames"),
         window_frames=win, first_frames=[w, w + win], last_frames=[n - win, n],
@@ -280,8 +284,26 @@ def summarize(full: dict, warmup: int, window: int) -> dict:
         stage_ms_last={k: float(np.median(v[last])) for k, v in stages.items() if len(v) == n},
         rss_mb_after_warmup=float(rss[w]), rss_mb_end=float(rss[-1]), rss_mb_peak=float(rss.max()),
         rss_kb_per_frame_after_warmup=_slope(rss, w) * 1e3, rss_kb_per_frame_second_half=_slope(rss, half) * 1e3,
+        rss_floor_kb_per_frame_after_warmup=_slope(low, w // TRIM_WINDOW) * 1e3 / TRIM_WINDOW,
+        rss_ceiling_kb_per_frame_after_warmup=_slope(high, w // TRIM_WINDOW) * 1e3 / TRIM_WINDOW,
+        rss_ceiling_mb_every_100=[float(high[i:i + per_100].max()) for i in range(0, len(high), per_100)],
         **heap_fields, backend=full.get("backend"),
     )
+
+
+TRIM_WINDOW = 25
+"""Frames per window of the RSS floor and ceiling: the ``ssf`` network stage's default heap
+trim period (``ssf.network.trim_heap_every``). Between two trims the RSS climbs as the frames
+touch free heap pages again (a saw-tooth of ~300 MB on a 64-beam ``ssf`` run); its minima
+follow what the run holds, its maxima the working set."""
+
+
+def _window_extremes(series: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """(minimum, maximum) of ``series`` over consecutive ``window``-frame windows (the last,
+    shorter one dropped)."""
+    n = len(series) // window * window
+    blocks = np.asarray(series[:n], float).reshape(-1, window)
+    return blocks.min(axis=1), blocks.max(axis=1)
 
 
 def _heap_series(full: dict) -> np.ndarray | None:
