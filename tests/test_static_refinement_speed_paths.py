@@ -8,7 +8,14 @@ import pytest
 
 from flowslam.config import FlowRefinementConfig
 from flowslam.datasets import open_dataset
-from flowslam.sceneflow.refinement.static import _covariances, _planar_points, _target_centroids, _voxel_centroids
+from flowslam.sceneflow.refinement.static import (
+    _covariances,
+    _fitness,
+    _near_any,
+    _planar_points,
+    _target_centroids,
+    _voxel_centroids,
+)
 from flowslam.sceneflow.refinement.symmetric3 import smallest_eigenvectors, symmetric_eigenvalues
 
 
@@ -73,6 +80,46 @@ def test_planar_points_match_the_eigh_selection(kitti_target):
     np.testing.assert_array_equal(planar, kitti_target[ref])
     well_posed = (ref_values[ref, 1] - ref_values[ref, 0]) / ref_values[ref].sum(axis=1) > 1e-3
     assert _angle_deg(normals, ref_vectors[ref, :, 0])[well_posed].max() < 1e-4
+
+
+def test_planar_points_with_lines_asked_again_match_scipys_neighbourhoods(kitti_target):
+    """With line-like points asked again (``line_radius_m``, the default), the compiled
+    neighbour search gives the planar points and normals of SciPy's query bit for bit."""
+    from flowslam.sceneflow.refinement import static
+
+    c = FlowRefinementConfig()
+    planar, normals = _planar_points(kitti_target, c)
+    original = static.knn_within
+    static.knn_within = lambda *args: None  # decline: SciPy's query on the tree
+    try:
+        ref_planar, ref_normals = _planar_points(kitti_target, c)
+    finally:
+        static.knn_within = original
+    flat, spread = static._flat_and_spread(symmetric_eigenvalues(_covariances(kitti_target, c.normal_radius_m)), c)
+    assert c.line_radius_m > 0 and (flat & ~spread).sum() > 500 and len(planar) > 1000  # lines were asked again
+    np.testing.assert_array_equal(planar, ref_planar)
+    np.testing.assert_array_equal(normals, ref_normals)
+
+
+@pytest.mark.parametrize("radius", [0.3, 0.6, 1.0])
+def test_near_any_and_fitness_equal_the_kd_tree(kitti_target, radius):
+    """The dynamic exclusion (``_near_any``) and the overlap (``_fitness``), compiled, give
+    the KD-tree's answers on a real KITTI target: the same points near, the same share;
+    a point at exactly the radius is not near (as in SciPy's query)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(3)
+    others = kitti_target[::9] + rng.normal(scale=0.4, size=(len(kitti_target[::9]), 3))
+    expected = np.isfinite(cKDTree(others).query(kitti_target, distance_upper_bound=radius)[0])
+    got = _near_any(kitti_target, others, radius)
+    assert 0.05 < expected.mean() < 0.95
+    np.testing.assert_array_equal(got, expected)
+    tree = cKDTree(kitti_target)
+    moved = kitti_target[::5] + rng.normal(scale=0.5, size=(len(kitti_target[::5]), 3))
+    share = np.isfinite(tree.query(moved, distance_upper_bound=radius)[0]).mean()
+    assert _fitness(tree, moved, radius) == share
+    on_radius = np.array([[radius, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    np.testing.assert_array_equal(_near_any(on_radius, np.zeros((1, 3)), radius), [False, True])
 
 
 def test_target_centroids_are_open3ds(kitti_extract):

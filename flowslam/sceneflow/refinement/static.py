@@ -39,7 +39,7 @@ from flowslam.config.ssf import FlowRefinementConfig
 from flowslam.geometry import transform_points
 from flowslam.sceneflow.refinement.clusters import neighbourhood_covariances
 from flowslam.sceneflow.refinement.compiled_icp import IcpTarget, nearest_within, register_point_to_plane
-from flowslam.sceneflow.refinement.compiled_neighbourhoods import gathered_covariances, knn_within
+from flowslam.sceneflow.refinement.compiled_neighbourhoods import gathered_covariances, knn_within, near_any_points
 from flowslam.sceneflow.refinement.symmetric3 import smallest_eigenvectors, symmetric_eigenvalues
 
 __all__ = ["RefinedFlow", "refine_static_flow"]
@@ -99,11 +99,16 @@ def _target_centroids(points: np.ndarray, voxel: float, max_range: float) -> np.
 
 
 def _near_any(points: np.ndarray, others: np.ndarray, radius: float) -> np.ndarray:
-    """(N,) bool: ``points`` (N,3) with one of ``others`` (M,3, same frame) closer than ``radius`` (m)."""
+    """(N,) bool: ``points`` (N,3) with one of ``others`` (M,3, same frame) closer than
+    ``radius`` (m). Compiled (``near_any_points``: cubes of edge ``radius``), a KD-tree over
+    ``others`` where that declines; the same answers (KITTI 0-15 replay: 8.8 -> 3.9 ms)."""
     from scipy.spatial import cKDTree
 
     if len(others) == 0:
         return np.zeros(len(points), dtype=bool)
+    near = near_any_points(others, points, radius)
+    if near is not None:
+        return near
     tree = cKDTree(others, balanced_tree=False, compact_nodes=False)  # built once, queried once: cheap build
     return np.isfinite(tree.query(points, distance_upper_bound=radius)[0])
 
@@ -118,17 +123,24 @@ def _covariances(points: np.ndarray, radius: float, max_nn: int = 20, tree=None)
     sums from one compiled pass per neighbourhood. On the 2-core VM, a KITTI target (13.5k
     points): the query 21 -> 13 ms; the sums 2 ms. Python's GIL is released while they run
     (Open3D holds it)."""
+    cov, count = _gathered(points, np.arange(len(points)), radius, max_nn, tree)
+    cov[count < 3] = np.eye(3)
+    return cov
+
+
+def _gathered(points: np.ndarray, idx: np.ndarray, radius: float, max_nn: int, tree=None) -> tuple:
+    """((len(idx),3,3) covariances, (len(idx),) counts) of the at most ``max_nn`` neighbours
+    within ``radius`` (m) of ``points[idx]``: compiled neighbour search
+    (:func:`~flowslam.sceneflow.refinement.compiled_neighbourhoods.knn_within`), SciPy's on
+    ``tree`` (built here when None) where that declines; the same neighbours either way."""
     from scipy.spatial import cKDTree
 
     points = np.asarray(points, dtype=np.float64)
-    found = knn_within(points, np.arange(len(points)), radius, max_nn)
+    found = knn_within(points, idx, radius, max_nn)
     if found is None:
         tree = cKDTree(points) if tree is None else tree
-        cov, count = neighbourhood_covariances(tree, points, np.arange(len(points)), radius, max_nn)
-    else:
-        cov, count = gathered_covariances(points, *found)
-    cov[count < 3] = np.eye(3)
-    return cov
+        return neighbourhood_covariances(tree, points, idx, radius, max_nn)
+    return gathered_covariances(points, *found)
 
 
 LINE_NEIGHBOURS = 40
@@ -168,7 +180,7 @@ def _planar_points(points: np.ndarray, c: FlowRefinementConfig, tree=None) -> tu
     planar = flat & spread
     line = np.flatnonzero(flat & ~spread)
     if line.size and c.line_radius_m > 0:  # one ring's stretch: ask a wider neighbourhood
-        wide, count = neighbourhood_covariances(tree, points, line, c.line_radius_m, LINE_NEIGHBOURS)
+        wide, count = _gathered(points, line, c.line_radius_m, LINE_NEIGHBOURS, tree)
         wide_values = symmetric_eigenvalues(wide)
         wide_flat, wide_spread = _flat_and_spread(wide_values, c)
         kept = wide_flat & wide_spread & (count >= 3)
@@ -191,8 +203,13 @@ def _icp(src_points: np.ndarray, target: IcpTarget, normals: np.ndarray, T_init:
 
 
 def _fitness(target_tree, x: np.ndarray, reach: float) -> float:
-    """Share of the moved source points ``x`` (M,3, frame k) with a target point within ``reach`` (m)."""
-    return float(np.isfinite(target_tree.query(x, distance_upper_bound=reach)[0]).mean())
+    """Share of the moved source points ``x`` (M,3, frame k) with a point of ``target_tree``
+    (a cKDTree) closer than ``reach`` (m); compiled as :func:`_near_any`, the tree's query
+    where that declines."""
+    near = near_any_points(target_tree.data, x, reach)
+    if near is None:
+        near = np.isfinite(target_tree.query(x, distance_upper_bound=reach)[0])
+    return float(near.mean())
 
 
 def _snap(x: np.ndarray, target: IcpTarget, normals: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
