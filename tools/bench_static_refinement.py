@@ -18,7 +18,7 @@ when it exists). Then the calls are replayed ``--runs`` times and the script rep
                                              [--old /path/to/old_static.py] [--set FIELD=VALUE ...]
 
 ``--set`` gives the current code's calls ``ssf.refine`` options (``FlowRefinementConfig``
-fields, e.g. ``--set coarse_max_iterations=2``); the old code keeps its defaults, so
+fields, e.g. ``--set max_source_points=2000``); the old code keeps its defaults, so
 ``--old`` on a copy of the current ``static.py`` times an option against the default.
 
 Run with ``OPENBLAS_NUM_THREADS=1 OMP_WAIT_POLICY=PASSIVE`` like the CLI; the machine's
@@ -41,7 +41,8 @@ import numpy as np
 
 DATA = Path(os.environ.get("FLOWSLAM_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 ARGS = ("source", "flow", "static_mask", "target", "T_init")
-SUB_STEPS = ("_voxel_centroids", "_target_centroids", "_near_any", "_covariances", "_planar_points", "_icp", "_fitness", "_snap")
+SUB_STEPS = ("_voxel_centroids", "_target_centroids", "_near_any", "_covariances", "_planar_points", "_icp", "_fitness",
+             "_snap")
 
 
 def record(sequence: Path, path: Path) -> list[tuple]:
