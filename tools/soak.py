@@ -254,10 +254,10 @@ def _stop_at(proc: subprocess.Popen, out: Path, target: int, margin: float) -> t
     return proc.returncode, stderr
 
 
-def summarize(full: dict, warmup: int, window: int) -> dict:
+def summarize(full: dict, warmup: int, window: int, trim_frames: int) -> dict:
     """Medians over the ``window`` frames after ``warmup`` ("first") and the last
     ``window`` frames ("last"); RSS after warm-up, at the end, its peak and its slope, the
-    slopes of its floor and ceiling (minima and maxima per ``TRIM_WINDOW`` frames) and the
+    slopes of its floor and ceiling (minima and maxima per ``trim_frames`` frames) and the
     ceiling per 100 frames; the memory malloc hands out after warm-up, at the end and its
     slope, where glibc tells it."""
     s, rss = np.asarray(full["seconds"]) * 1e3, np.asarray(full["rss_mb"])
@@ -273,8 +273,8 @@ def summarize(full: dict, warmup: int, window: int) -> dict:
         heap_in_use_mb_after_warmup=float(heap[w]), heap_in_use_mb_end=float(heap[-1]),
         heap_in_use_kb_per_frame_after_warmup=_slope(heap, w) * 1e3,
     )
-    low, high = _window_extremes(rss, TRIM_WINDOW)
-    per_100 = 100 // TRIM_WINDOW
+    low, high = _window_extremes(rss, trim_frames)
+    per_100 = max(100 // trim_frames, 1)
     return dict(
         frames=n, wall_s=full["wall_s"], loops=full["loops"], loop_frames=full.get("loop_frames"),
         window_frames=win, first_frames=[w, w + win], last_frames=[n - win, n],
@@ -284,18 +284,23 @@ def summarize(full: dict, warmup: int, window: int) -> dict:
         stage_ms_last={k: float(np.median(v[last])) for k, v in stages.items() if len(v) == n},
         rss_mb_after_warmup=float(rss[w]), rss_mb_end=float(rss[-1]), rss_mb_peak=float(rss.max()),
         rss_kb_per_frame_after_warmup=_slope(rss, w) * 1e3, rss_kb_per_frame_second_half=_slope(rss, half) * 1e3,
-        rss_floor_kb_per_frame_after_warmup=_slope(low, w // TRIM_WINDOW) * 1e3 / TRIM_WINDOW,
-        rss_ceiling_kb_per_frame_after_warmup=_slope(high, w // TRIM_WINDOW) * 1e3 / TRIM_WINDOW,
+        rss_floor_kb_per_frame_after_warmup=_slope(low, w // trim_frames) * 1e3 / trim_frames,
+        rss_ceiling_kb_per_frame_after_warmup=_slope(high, w // trim_frames) * 1e3 / trim_frames,
         rss_ceiling_mb_every_100=[float(high[i:i + per_100].max()) for i in range(0, len(high), per_100)],
         **heap_fields, backend=full.get("backend"),
     )
 
 
-TRIM_WINDOW = 25
-"""Frames per window of the RSS floor and ceiling: the ``ssf`` network stage's default heap
-trim period (``ssf.network.trim_heap_every``). Between two trims the RSS climbs as the frames
-touch free heap pages again (a saw-tooth of ~300 MB on a 64-beam ``ssf`` run); its minima
-follow what the run holds, its maxima the working set."""
+def trim_window(options: dict | None = None) -> int:
+    """Frames per window of the RSS floor and ceiling: the run's heap trim period
+    (``ssf.network.trim_heap_every`` in ``options``, else its default; the default where the
+    run never trims). Between two trims the RSS climbs as the frames touch free heap pages
+    again (a saw-tooth of ~300 MB on a 64-beam ``ssf`` run); its minima follow what the run
+    holds, its maxima the working set."""
+    from flowslam.config.ssf import NetworkStageConfig
+
+    default = NetworkStageConfig().trim_heap_every
+    return int((options or {}).get("ssf.network.trim_heap_every", default)) or default
 
 
 def _window_extremes(series: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
@@ -405,9 +410,10 @@ def main() -> None:
         print(json.dumps(report["sigterm"], indent=2), flush=True)
         (args.out / "soak.json").write_text(json.dumps(report, indent=1) + "\n")
         return
-    full = run_in_process(sequence, args.frontend, args.out, args.max_frames, _overrides(args.set))
+    options = _overrides(args.set)
+    full = run_in_process(sequence, args.frontend, args.out, args.max_frames, options)
     report = dict(frontend=args.frontend, backend="isam2 s-loam", sequence=str(sequence), columns=args.columns,
-                  summary=summarize(full, args.warmup, args.window), metrics=full["metrics"],
+                  summary=summarize(full, args.warmup, args.window, trim_window(options)), metrics=full["metrics"],
                   components=full["components"])
     print(json.dumps(report["summary"], indent=2), flush=True)
     plot(full, args.out / "soak.png", f"soak: {args.frontend} + isam2 s-loam, {len(full['seconds'])} frames")

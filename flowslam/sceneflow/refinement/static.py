@@ -100,17 +100,24 @@ def _target_centroids(points: np.ndarray, voxel: float, max_range: float) -> np.
 
 def _near_any(points: np.ndarray, others: np.ndarray, radius: float) -> np.ndarray:
     """(N,) bool: ``points`` (N,3) with one of ``others`` (M,3, same frame) closer than
-    ``radius`` (m). Compiled (``near_any_points``: cubes of edge ``radius``), a KD-tree over
-    ``others`` where that declines; the same answers (KITTI 0-15 replay: 8.8 -> 3.9 ms)."""
-    from scipy.spatial import cKDTree
-
+    ``radius`` (m) (:func:`_within`; KITTI 0-15 replay: 8.8 -> 3.9 ms against SciPy's KD-tree)."""
     if len(others) == 0:
         return np.zeros(len(points), dtype=bool)
-    near = near_any_points(others, points, radius)
+    return _within(points, others, radius)
+
+
+def _within(x: np.ndarray, points: np.ndarray, radius: float, tree=None) -> np.ndarray:
+    """(M,) bool: one of ``points`` (N,3) closer than ``radius`` (m) to each ``x`` (M,3, same
+    frame). Compiled (``near_any_points``: cubes of edge ``radius``); where that declines,
+    the query of ``tree`` (a cKDTree over ``points``, built here when None): the same answers."""
+    from scipy.spatial import cKDTree
+
+    near = near_any_points(points, x, radius)
     if near is not None:
         return near
-    tree = cKDTree(others, balanced_tree=False, compact_nodes=False)  # built once, queried once: cheap build
-    return np.isfinite(tree.query(points, distance_upper_bound=radius)[0])
+    if tree is None:
+        tree = cKDTree(points, balanced_tree=False, compact_nodes=False)  # built once, queried once: cheap build
+    return np.isfinite(tree.query(x, distance_upper_bound=radius)[0])
 
 
 def _covariances(points: np.ndarray, radius: float, max_nn: int = 20, tree=None) -> np.ndarray:
@@ -204,12 +211,8 @@ def _icp(src_points: np.ndarray, target: IcpTarget, normals: np.ndarray, T_init:
 
 def _fitness(target_tree, x: np.ndarray, reach: float) -> float:
     """Share of the moved source points ``x`` (M,3, frame k) with a point of ``target_tree``
-    (a cKDTree) closer than ``reach`` (m); compiled as :func:`_near_any`, the tree's query
-    where that declines."""
-    near = near_any_points(target_tree.data, x, reach)
-    if near is None:
-        near = np.isfinite(target_tree.query(x, distance_upper_bound=reach)[0])
-    return float(near.mean())
+    (a cKDTree) closer than ``reach`` (m) (:func:`_within`)."""
+    return float(_within(x, target_tree.data, reach, target_tree).mean())
 
 
 def _snap(x: np.ndarray, target: IcpTarget, normals: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
