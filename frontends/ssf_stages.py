@@ -395,7 +395,7 @@ def restore_motion_models(saved: list) -> None:
 class ScanIndex:
     """What the objects stage asks of the pair's scans, built from the scans alone:
     ``surface``, the :class:`~flowslam.sceneflow.refinement.clusters.ScanSurface` of scan k
-    (its KD-tree and BEV buckets built); ``image``, scan k's
+    (its cube index and BEV buckets built); ``image``, scan k's
     :class:`~flowslam.sceneflow.refinement.visibility.RangeImage` (None when neither the
     geometric movers nor the hidden-object test use one); ``ground``, the
     :class:`~flowslam.sceneflow.refinement.clusters.LocalGround` of scan k-1."""
@@ -465,7 +465,7 @@ class ObjectsStage:
     static refinement (the ego motion it verifies objects against); keeps the network's
     output otherwise.
 
-    Scan k's surface index (KD-tree, normals, boxes) and scan k-1's local ground are
+    Scan k's surface index (cube index, normals, boxes) and scan k-1's local ground are
     built once per pair and shared by the sub-steps."""
 
     name = "objects"

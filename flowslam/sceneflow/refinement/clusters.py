@@ -5,9 +5,9 @@ of scan k that the objects stage shares between its sub-steps.
 - :func:`bev_extent`: the BEV bounding-box diagonal of each labelled group of points;
 - :class:`LocalGround` / :func:`above_ground`: lowest point per BEV cell, and the points
   clearly above it;
-- :class:`ScanSurface`: one KD-tree over a scan (built once, on first use), an exact
-  "any point within r" test with a voxel-grid shortcut, cached tangent-plane normals and
-  box queries through a BEV bucket index.
+- :class:`ScanSurface`: one cube index over a scan (built once, on first use) for its
+  nearest-point searches, an exact "any point within r" test, cached tangent-plane normals
+  and box queries through a BEV bucket index.
 
 Points (N,3) in any sensor frame with z up; cells and distances in metres.
 """
@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from flowslam.sceneflow.refinement.compiled_neighbourhoods import (
+    CubeIndex,
     box_points,
     gathered_covariances,
     near_any_points,
@@ -41,6 +42,8 @@ __all__ = [
 
 _SQRT3 = float(np.sqrt(3.0))
 _NEIGHBOURS_3X3 = np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1)], dtype=np.int64)
+NORMAL_NEIGHBOURS = 20
+"""Neighbours (at most) whose principal axes give a point's tangent-plane normal."""
 MAX_GRID_CELLS = 64_000_000
 """Voxel grids larger than this (bytes of a bool grid) are not built: the exact search does it all."""
 
@@ -178,7 +181,7 @@ def neighbourhood_covariances(tree, points: np.ndarray, idx: np.ndarray, radius:
     return gathered_covariances(points, *_neighbourhoods(tree, points, idx, radius, k))
 
 
-def plane_normals(tree, points: np.ndarray, idx: np.ndarray, radius: float, k: int = 20) -> np.ndarray:
+def plane_normals(tree, points: np.ndarray, idx: np.ndarray, radius: float, k: int = NORMAL_NEIGHBOURS) -> np.ndarray:
     """(len(idx),3) unit normals of ``points[idx]``: smallest principal axis of their (at
     most ``k``) neighbours within ``radius`` (``tree``: a cKDTree over ``points``); a point
     with < 3 neighbours gets NaN, so does one without a unique smallest axis (a line)."""
@@ -195,20 +198,25 @@ def _neighbourhoods(tree, points: np.ndarray, idx: np.ndarray, radius: float, k:
 
 class ScanSurface:
     """The points of one scan (its sensor frame) within ``max_range_m`` (horizontal) and what
-    several tests against its surface share: one KD-tree, cached normals, a BEV bucket index.
+    several tests against its surface share: one cube index (:meth:`nearest`, the normals),
+    cached normals, a BEV bucket index.
 
     Everything is built on first use, once: the geometric movers' off-surface test, the
-    objects' ICP boxes and their scores all ask the same scan k.
+    objects' ICP boxes and their scores all ask the same scan k. ``cube_m``: the edge (m)
+    of the cube index's cubes; searches within about that radius are the fastest (the
+    objects' scores ask within 0.3 m, their normals within 1 m).
     """
 
-    def __init__(self, points: np.ndarray, max_range_m: float = np.inf, bucket_m: float = 2.0):
+    def __init__(self, points: np.ndarray, max_range_m: float = np.inf, bucket_m: float = 2.0, cube_m: float = 0.3):
         points = np.asarray(points, dtype=np.float64)
         if np.isfinite(max_range_m):
             near = np.einsum("ij,ij->i", points[:, :2], points[:, :2]) < max_range_m * max_range_m
             points = np.compress(near, points, axis=0)  # boolean indexing's rows, ~4x faster on a scan
         self.points = points
         self.bucket_m = bucket_m
+        self.cube_m = cube_m
         self._tree = None
+        self._cubes: CubeIndex | None | bool = False  # False: not built yet; None: the points decline one
         self._normals = np.empty((len(points), 3))
         self._normal_radius: float | None = None
         self._has_normal = np.zeros(len(points), dtype=bool)
@@ -218,18 +226,41 @@ class ScanSurface:
         return len(self.points)
 
     def prepare(self) -> None:
-        """Build the KD-tree and the BEV bucket index now (else on first use)."""
-        self.tree
+        """Build the cube index and the BEV bucket index now (else on first use)."""
+        self._cube_index()
         self._bucket_index()
 
     @property
     def tree(self):
-        """``scipy.spatial.cKDTree`` over the points (unbalanced: built ~3x faster, queried as fast)."""
+        """``scipy.spatial.cKDTree`` over the points (unbalanced: built ~3x faster, queried as
+        fast), built on first use: the searches fall back to it where the cube index declines."""
         if self._tree is None:
             from scipy.spatial import cKDTree
 
             self._tree = cKDTree(self.points, leafsize=16, balanced_tree=False, compact_nodes=False)
         return self._tree
+
+    def _cube_index(self) -> CubeIndex | None:
+        """The :class:`CubeIndex` of the points (``cube_m``), or None where it declines."""
+        if self._cubes is False:
+            self._cubes = CubeIndex.build(self.points, self.cube_m)
+        return self._cubes
+
+    def query(self, x: np.ndarray, k: int, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        """SciPy's ``cKDTree.query(x, k, distance_upper_bound=radius)`` over the points, as
+        (distances, indices) of shape (M,) for ``k`` = 1, else (M,k) (M queries ``x``, m):
+        from the cube index, the same numbers (equal distances: lowest index first), or
+        from the KD-tree where the index declines."""
+        index = self._cube_index()
+        if index is None:
+            return self.tree.query(x, k=k, distance_upper_bound=radius)
+        dist, nb = index.query(x, k, radius)
+        return (dist[:, 0], nb[:, 0]) if k == 1 else (dist, nb)
+
+    def nearest(self, x: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        """(distance (M,), index (M,)) of the point nearest each query ``x`` (M,3) closer than
+        ``radius`` (m); inf and ``len(self)`` where none is (:meth:`query` with k = 1)."""
+        return self.query(x, 1, radius)
 
     def near_any(self, x: np.ndarray, radius: float) -> np.ndarray:
         """(M,) bool: some point of the scan lies within ``radius`` of each query ``x`` (M,3).
@@ -257,13 +288,15 @@ class ScanSurface:
 
     def normals(self, idx: np.ndarray, radius: float) -> np.ndarray:
         """(len(idx),3) tangent-plane normals of points ``idx`` (:func:`plane_normals` with
-        ``radius``), each computed once per scan and radius."""
+        ``radius``, its neighbours from :meth:`query`), each computed once per scan and radius."""
         if self._normal_radius != radius:
             self._normal_radius = radius
             self._has_normal[:] = False
         todo = np.unique(idx[~self._has_normal[idx]])
         if todo.size:
-            self._normals[todo] = plane_normals(self.tree, self.points, todo, radius)
+            dist, nb = self.query(self.points[todo], NORMAL_NEIGHBOURS, radius)
+            self._normals[todo] = neighbourhood_normals(self.points, nb.reshape(len(todo), -1),
+                                                        dist.reshape(len(todo), -1))[0]
             self._has_normal[todo] = True
         return self._normals[idx]
 

@@ -30,7 +30,8 @@ from numba import njit
 
 from flowslam.compiled_hash import find_slot, grouped_positions, number_keys
 
-__all__ = ["box_points", "gathered_covariances", "knn_within", "near_any_points", "neighbourhood_normals"]
+__all__ = ["CubeIndex", "box_points", "gathered_covariances", "knn_within", "near_any_points",
+           "neighbourhood_normals"]
 
 
 @njit(cache=True, nogil=True)
@@ -251,9 +252,15 @@ def near_any_points(points: np.ndarray, x: np.ndarray, radius: float) -> np.ndar
 @njit(cache=True, nogil=True)
 def _knn_within(points, idx, radius, k, lo):
     """:func:`knn_within` (``lo``: the points' minimum per column)."""
+    slot_keys, slot_cell, shift, cube_keys, start, members, cell_of = _cubes(points, np.arange(points.shape[0]), lo,
+                                                                             radius)
+    return _knn_query(points, idx, radius, k, slot_keys, slot_cell, shift, cube_keys, start, members, cell_of)
+
+
+@njit(cache=True, nogil=True)
+def _knn_query(points, idx, radius, k, slot_keys, slot_cell, shift, cube_keys, start, members, cell_of):
+    """:func:`knn_within` from the points' cubes of edge ``radius`` (:func:`_cubes` of all of them)."""
     n_points = points.shape[0]
-    # the points bucketed by cube of edge ``radius``
-    slot_keys, slot_cell, shift, cube_keys, start, members, cell_of = _cubes(points, np.arange(n_points), lo, radius)
     cells = cube_keys.shape[0]
     # the queries grouped by cube: each cube's 27-cube neighbourhood is gathered once
     n = idx.shape[0]
@@ -324,6 +331,121 @@ def knn_within(points: np.ndarray, idx: np.ndarray, radius: float, k: int) -> tu
     if bounds is None:
         return None
     return _knn_within(points, idx, float(radius), k, bounds[0])
+
+
+@njit(cache=True, nogil=True)
+def _gap(q, low, edge):
+    """Squared distance from coordinate ``q`` to the interval [``low``, ``low + edge``]."""
+    if q < low:
+        return (low - q) * (low - q)
+    high = low + edge
+    return (q - high) * (q - high) if q > high else 0.0
+
+
+@njit(cache=True, nogil=True)
+def _knn_rings(points, x, radius, k, lo, top, edge, slot_keys, slot_cell, shift, start, members):
+    """:meth:`CubeIndex.query`: for each query, the cubes (edge ``edge``) in rings of growing
+    Chebyshev distance around its own, until the nearest point of the next ring could not
+    be nearer than the k-th found (with a margin for rounding) or lies beyond ``radius``
+    (``top``: the largest cube number per axis)."""
+    n = points.shape[0]
+    nb = np.full((x.shape[0], k), n, np.int64)
+    dist = np.full((x.shape[0], k), np.inf)
+    best = np.empty(k)
+    r2 = radius * radius
+    for i in range(x.shape[0]):
+        q0, q1, q2 = x[i, 0], x[i, 1], x[i, 2]
+        if not (np.isfinite(q0) and np.isfinite(q1) and np.isfinite(q2)):
+            continue
+        f0, f1, f2 = np.floor((q0 - lo[0]) / edge), np.floor((q1 - lo[1]) / edge), np.floor((q2 - lo[2]) / edge)
+        reach = np.ceil(radius / edge) + 1
+        if f0 < -reach or f1 < -reach or f2 < -reach or f0 > top[0] + reach or f1 > top[1] + reach \
+                or f2 > top[2] + reach:
+            continue  # no cube of the points lies within ``radius``
+        ci, cj, ck = np.int64(f0), np.int64(f1), np.int64(f2)
+        found = 0
+        ring = 0
+        while True:
+            for a in range(ci - ring, ci + ring + 1):
+                if a < 0 or a > top[0]:
+                    continue
+                ga = _gap(q0, lo[0] + a * edge, edge)
+                for b in range(cj - ring, cj + ring + 1):
+                    if b < 0 or b > top[1]:
+                        continue
+                    gab = ga + _gap(q1, lo[1] + b * edge, edge)
+                    inner = abs(a - ci) < ring and abs(b - cj) < ring
+                    for c in range(ck - ring, ck + ring + 1):
+                        if c < 0 or c > top[2] or (inner and abs(c - ck) < ring):
+                            continue
+                        bound = gab + _gap(q2, lo[2] + c * edge, edge)  # the cube's nearest point, squared
+                        if bound > r2 * (1.0 + 1e-9) or (found == k and bound > best[k - 1] * (1.0 + 1e-9)):
+                            continue
+                        cube = slot_cell[find_slot(slot_keys, slot_cell, shift, (a << 42) | (b << 21) | c)]
+                        if cube == -1:
+                            continue
+                        for m in range(start[cube], start[cube + 1]):
+                            j = members[m]
+                            d0, d1, d2 = q0 - points[j, 0], q1 - points[j, 1], q2 - points[j, 2]
+                            sq = d0 * d0 + d1 * d1 + d2 * d2
+                            if sq >= r2 or (found == k and (sq > best[k - 1] or (sq == best[k - 1]
+                                                                                  and j > nb[i, k - 1]))):
+                                continue
+                            # insert into the sorted best (equal distances: the lower index first)
+                            pos = found if found < k else k - 1
+                            while pos > 0 and (best[pos - 1] > sq or (best[pos - 1] == sq and nb[i, pos - 1] > j)):
+                                best[pos] = best[pos - 1]
+                                nb[i, pos] = nb[i, pos - 1]
+                                pos -= 1
+                            best[pos] = sq
+                            nb[i, pos] = j
+                            if found < k:
+                                found += 1
+            # every point not visited yet lies at least ``margin`` away
+            margin = min(q0 - (lo[0] + (f0 - ring) * edge), lo[0] + (f0 + ring + 1) * edge - q0,
+                         q1 - (lo[1] + (f1 - ring) * edge), lo[1] + (f1 + ring + 1) * edge - q1,
+                         q2 - (lo[2] + (f2 - ring) * edge), lo[2] + (f2 + ring + 1) * edge - q2)
+            if margin >= radius or (found == k and best[k - 1] * (1.0 + 1e-9) < margin * margin):
+                break
+            ring += 1
+        for f in range(found):
+            dist[i, f] = np.sqrt(best[f])
+    return nb, dist
+
+
+class CubeIndex:
+    """Points (N,3) bucketed once by cube of edge ``edge`` in a hash table, for the searches
+    SciPy's ``cKDTree.query(x, k, distance_upper_bound=radius)`` answers, with its numbers
+    (distances as the square root of ``dx^2 + dy^2 + dz^2``; equal distances: lowest index
+    first): :meth:`query` visits the cubes around each query ring by ring and stops where
+    no closer point can remain. Built by :meth:`build` (None where the points are not all
+    finite or span more cubes than the packed keys count). It pays where a scan is asked
+    many times: the objects stage asks scan k ~800 times per KITTI pair for the nearest
+    point within 0.3 m and for the 20 within 1 m of its points (their normals)."""
+
+    def __init__(self, points: np.ndarray, edge: float, lo: np.ndarray, hi: np.ndarray):
+        self.points, self.edge, self.lo = points, float(edge), lo
+        self.top = np.floor((hi - lo) / self.edge)  # the largest cube number per axis
+        slot_keys, slot_cell, shift, _, start, members, _ = _cubes(points, np.arange(len(points)), lo, self.edge)
+        self._cubes = (slot_keys, slot_cell, shift, start, members)
+
+    @classmethod
+    def build(cls, points: np.ndarray, edge: float) -> CubeIndex | None:
+        """The index of ``points`` by cubes of edge ``edge`` (> 0, same units)."""
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        bounds = _cube_bounds(points, edge) if len(points) else None
+        return None if bounds is None else cls(points, edge, *bounds)
+
+    def query(self, x: np.ndarray, k: int, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        """(distances (M,k), indices (M,k)) of the at most ``k`` points nearest each query
+        ``x`` (M,3) closer than ``radius``, nearest first; inf and N where there are fewer
+        (all of them for a non-finite query)."""
+        k = min(int(k), len(self.points))
+        x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3)
+        if len(x) == 0 or k == 0:
+            return np.zeros((len(x), k)), np.zeros((len(x), k), np.int64)
+        nb, dist = _knn_rings(self.points, x, float(radius), k, self.lo, self.top, self.edge, *self._cubes)
+        return dist, nb
 
 
 @njit(cache=True, nogil=True)

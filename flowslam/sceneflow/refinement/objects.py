@@ -39,7 +39,7 @@ explanation fits the data).
 
 Scan k is indexed once per pair (:class:`~flowslam.sceneflow.refinement.clusters.ScanSurface`):
 the ICP boxes come from its BEV buckets (same points, same x order as a bisection of the
-x-sorted scan), and every score and landing test queries its one KD-tree, with each
+x-sorted scan), and every score and landing test queries its one cube index, with each
 target normal computed once. The box only bounds the ICP's target; scores look at the
 whole scan. The scored points start >= ``margin_m`` inside the box, so a score differs
 from a box-only one only where a motion puts them near the box's edge (target normals
@@ -271,7 +271,7 @@ def _plane_distances(x: np.ndarray, surface: ScanSurface, c: ObjectRefinementCon
 
 def _surface_distances(x: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> tuple:
     """((M,) distance (m) of each point ``x`` (frame k) to its nearest scan-k point, inf
-    beyond ``score_distance_m``; (M,) :func:`_plane_distances`), from one KD-tree query."""
+    beyond ``score_distance_m``; (M,) :func:`_plane_distances`), from one nearest-point search."""
     dist, ok, j, normals = _nearest_normals(x, surface, c)
     plane = np.full(len(x), np.inf)
     if ok.size:
@@ -304,7 +304,7 @@ def _nearest_normals(x: np.ndarray, surface: ScanSurface, c: ObjectRefinementCon
     """((M,) distance (m) of each point ``x`` (frame k) to its nearest scan-k point, inf
     beyond ``score_distance_m``; the indices of the points with one; that point's index in
     ``surface``, its tangent-plane normal (NaN: none)) for those."""
-    dist, j = surface.tree.query(x, distance_upper_bound=c.score_distance_m)
+    dist, j = surface.nearest(x, c.score_distance_m)
     ok = np.flatnonzero(np.isfinite(dist))
     if ok.size == 0:
         return dist, ok, ok, np.zeros((0, 3))
@@ -1507,7 +1507,7 @@ def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], s
     if not motions:
         return ego, np.full(len(p), -1, dtype=np.int64)
     landings = np.stack([transform_points(M, p) for M in motions])
-    dist = surface.tree.query(landings.reshape(-1, 3), distance_upper_bound=c.score_distance_m)[0]
+    dist = surface.nearest(landings.reshape(-1, 3), c.score_distance_m)[0]
     dist = dist.reshape(len(motions), len(p))
     lifted = _lifted(landings - ego, c)
     no_motion = lifted.all(axis=0)  # every motion lifts the point: only its ego landing is left
@@ -1516,7 +1516,7 @@ def _choose_landing(p: np.ndarray, ego: np.ndarray, motions: list[np.ndarray], s
     if len(motions) > 1 and solid is not None and c.coherent_parts:
         best = _part_majority(p, best, dist, solid, c)
     rows = np.arange(len(p))
-    d_ego = surface.tree.query(ego, distance_upper_bound=c.score_distance_m)[0] if ego_dist is None else ego_dist
+    d_ego = surface.nearest(ego, c.score_distance_m)[0] if ego_dist is None else ego_dist
     nearest = dist[best, rows]
     take_ego = ((d_ego < nearest) & ~(nearest <= c.score_plane_m)) | no_motion
     own = landings[best, rows]

@@ -198,7 +198,7 @@ def _arrivals(source: np.ndarray, landings: np.ndarray, surface: ScanSurface, T_
         source_surface = ScanSurface(source[in_bounds(source, y.min(axis=0) - pad, y.max(axis=0) + pad)])
     if len(source_surface) == 0:
         return y
-    return y[~np.isfinite(source_surface.tree.query(y, distance_upper_bound=pad)[0])]
+    return y[~np.isfinite(source_surface.nearest(y, pad)[0])]
 
 
 def _arrival_clusters(source: np.ndarray, near: np.ndarray, arrived: np.ndarray, c: MotionEvidenceConfig) -> np.ndarray:
