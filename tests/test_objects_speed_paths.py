@@ -251,3 +251,37 @@ def test_ego_landings_asked_once_equal_the_per_object_queries():
     asked = cache.known.copy()
     cache(groups[1][:100])
     np.testing.assert_array_equal(cache.known, asked)  # nothing asked twice
+
+
+def _joined_by_pairs(xy: np.ndarray, labels: np.ndarray, gap: float) -> np.ndarray:
+    """The straightforward joining: every pair of points within ``gap`` (SciPy), a graph of
+    the labels they connect, its connected components."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    pairs = cKDTree(xy).query_pairs(gap, output_type="ndarray")
+    a, b = labels[pairs[:, 0]], labels[pairs[:, 1]]
+    n = int(labels.max()) + 1
+    graph = coo_matrix((np.ones(np.count_nonzero(a != b)), (a[a != b], b[a != b])), shape=(n, n))
+    return connected_components(graph, directed=False)[1][labels]
+
+
+def test_joined_labels_equal_the_components_of_the_pairs_within_the_gap():
+    from flowslam.sceneflow.refinement.clusters import bev_clusters
+    from flowslam.sceneflow.refinement.compiled_neighbourhoods import joined_labels
+
+    rng = np.random.default_rng(11)
+    for _ in range(60):  # scattered clouds of varied density and shape, and a street
+        p = rng.uniform(-5, 5, (int(rng.integers(2, 2500)), 3)) * rng.uniform(0.2, 3, 3)
+        labels = bev_clusters(p, 0.3)
+        gap = float(rng.uniform(0.31, 1.0))
+        np.testing.assert_array_equal(joined_labels(p[:, :2], labels, gap), _joined_by_pairs(p[:, :2], labels, gap))
+    street = _street(12, 6000)
+    labels = bev_clusters(street, 0.3)
+    np.testing.assert_array_equal(joined_labels(street[:, :2], labels, 0.8), _joined_by_pairs(street[:, :2], labels, 0.8))
+    # two points exactly the gap apart are joined (query_pairs' "at most r"); a hair farther, not
+    xy = np.array([[0.0, 0.0], [0.5, 0.0], [1.5, 0.0]])
+    assert list(joined_labels(xy, np.array([0, 1, 2]), 0.5)) == [0, 0, 1]
+    assert list(joined_labels(xy, np.array([2, 1, 0]), 1.0)) == [0, 0, 0]
+    with pytest.raises(ValueError):
+        joined_labels(np.array([[0.0, 0.0], [np.nan, 0.0]]), np.array([0, 1]), 0.5)

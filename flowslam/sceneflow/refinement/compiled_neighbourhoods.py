@@ -30,7 +30,7 @@ from numba import njit
 
 from flowslam.compiled_hash import find_slot, grouped_positions, number_keys
 
-__all__ = ["CubeIndex", "box_points", "gathered_covariances", "knn_within", "near_any_points",
+__all__ = ["CubeIndex", "box_points", "gathered_covariances", "joined_labels", "knn_within", "near_any_points",
            "neighbourhood_normals"]
 
 
@@ -343,29 +343,59 @@ def _gap(q, low, edge):
 
 
 @njit(cache=True, nogil=True)
+def _offer(points, members, first, last, q0, q1, q2, r2, k, found, best, nb):
+    """Offers the points ``members[first:last]`` to the sorted ``k`` best (squared
+    distances ``best``, indices ``nb``; ``found`` of them filled) of the query (q0, q1, q2)
+    within squared radius ``r2`` (equal distances: the lower index first); returns the new
+    ``found``."""
+    for m in range(first, last):
+        j = members[m]
+        d0, d1, d2 = q0 - points[j, 0], q1 - points[j, 1], q2 - points[j, 2]
+        sq = d0 * d0 + d1 * d1 + d2 * d2
+        if sq >= r2 or (found == k and (sq > best[k - 1] or (sq == best[k - 1] and j > nb[k - 1]))):
+            continue
+        pos = found if found < k else k - 1
+        while pos > 0 and (best[pos - 1] > sq or (best[pos - 1] == sq and nb[pos - 1] > j)):
+            best[pos] = best[pos - 1]
+            nb[pos] = nb[pos - 1]
+            pos -= 1
+        best[pos] = sq
+        nb[pos] = j
+        if found < k:
+            found += 1
+    return found
+
+
+@njit(cache=True, nogil=True)
 def _knn_rings(points, x, radius, k, lo, top, edge, slot_keys, slot_cell, shift, start, members):
     """:meth:`CubeIndex.query`: for each query, the cubes (edge ``edge``) in rings of growing
-    Chebyshev distance around its own, until the nearest point of the next ring could not
-    be nearer than the k-th found (with a margin for rounding) or lies beyond ``radius``
-    (``top``: the largest cube number per axis)."""
+    Chebyshev distance around its own, each ring's cubes nearest first, until the nearest
+    point of the next cube or ring could not be nearer than the k-th found (with a margin
+    for rounding) or lies beyond ``radius`` (``top``: the largest cube number per axis)."""
     n = points.shape[0]
     nb = np.full((x.shape[0], k), n, np.int64)
     dist = np.full((x.shape[0], k), np.inf)
     best = np.empty(k)
     r2 = radius * radius
+    slack = 1.0 + 1e-9
+    reach = np.ceil(radius / edge) + 1
+    size = int(2 * reach + 3) ** 3
+    bounds = np.empty(size)  # one ring's cubes with their nearest point's squared distance, sorted
+    cubes = np.empty(size, np.int64)
     for i in range(x.shape[0]):
         q0, q1, q2 = x[i, 0], x[i, 1], x[i, 2]
         if not (np.isfinite(q0) and np.isfinite(q1) and np.isfinite(q2)):
             continue
         f0, f1, f2 = np.floor((q0 - lo[0]) / edge), np.floor((q1 - lo[1]) / edge), np.floor((q2 - lo[2]) / edge)
-        reach = np.ceil(radius / edge) + 1
         if f0 < -reach or f1 < -reach or f2 < -reach or f0 > top[0] + reach or f1 > top[1] + reach \
                 or f2 > top[2] + reach:
             continue  # no cube of the points lies within ``radius``
         ci, cj, ck = np.int64(f0), np.int64(f1), np.int64(f2)
+        row = nb[i]
         found = 0
         ring = 0
         while True:
+            count = 0
             for a in range(ci - ring, ci + ring + 1):
                 if a < 0 or a > top[0]:
                     continue
@@ -379,38 +409,110 @@ def _knn_rings(points, x, radius, k, lo, top, edge, slot_keys, slot_cell, shift,
                         if c < 0 or c > top[2] or (inner and abs(c - ck) < ring):
                             continue
                         bound = gab + _gap(q2, lo[2] + c * edge, edge)  # the cube's nearest point, squared
-                        if bound > r2 * (1.0 + 1e-9) or (found == k and bound > best[k - 1] * (1.0 + 1e-9)):
+                        if bound > r2 * slack or (found == k and bound > best[k - 1] * slack):
                             continue
                         cube = slot_cell[find_slot(slot_keys, slot_cell, shift, (a << 42) | (b << 21) | c)]
                         if cube == -1:
                             continue
-                        for m in range(start[cube], start[cube + 1]):
-                            j = members[m]
-                            d0, d1, d2 = q0 - points[j, 0], q1 - points[j, 1], q2 - points[j, 2]
-                            sq = d0 * d0 + d1 * d1 + d2 * d2
-                            if sq >= r2 or (found == k and (sq > best[k - 1] or (sq == best[k - 1]
-                                                                                  and j > nb[i, k - 1]))):
-                                continue
-                            # insert into the sorted best (equal distances: the lower index first)
-                            pos = found if found < k else k - 1
-                            while pos > 0 and (best[pos - 1] > sq or (best[pos - 1] == sq and nb[i, pos - 1] > j)):
-                                best[pos] = best[pos - 1]
-                                nb[i, pos] = nb[i, pos - 1]
-                                pos -= 1
-                            best[pos] = sq
-                            nb[i, pos] = j
-                            if found < k:
-                                found += 1
+                        pos = count  # insertion by bound
+                        while pos > 0 and bounds[pos - 1] > bound:
+                            bounds[pos], cubes[pos] = bounds[pos - 1], cubes[pos - 1]
+                            pos -= 1
+                        bounds[pos], cubes[pos] = bound, cube
+                        count += 1
+            for t in range(count):
+                if found == k and bounds[t] > best[k - 1] * slack:
+                    break
+                found = _offer(points, members, start[cubes[t]], start[cubes[t] + 1], q0, q1, q2, r2, k, found,
+                               best, row)
             # every point not visited yet lies at least ``margin`` away
             margin = min(q0 - (lo[0] + (f0 - ring) * edge), lo[0] + (f0 + ring + 1) * edge - q0,
                          q1 - (lo[1] + (f1 - ring) * edge), lo[1] + (f1 + ring + 1) * edge - q1,
                          q2 - (lo[2] + (f2 - ring) * edge), lo[2] + (f2 + ring + 1) * edge - q2)
-            if margin >= radius or (found == k and best[k - 1] * (1.0 + 1e-9) < margin * margin):
+            if margin >= radius or (found == k and best[k - 1] * slack < margin * margin):
                 break
             ring += 1
         for f in range(found):
             dist[i, f] = np.sqrt(best[f])
     return nb, dist
+
+
+@njit(cache=True, nogil=True)
+def _root(parent, a):
+    """The root of ``a`` in the union-find forest ``parent`` (paths halved on the way)."""
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@njit(cache=True, nogil=True)
+def _joined_labels(xy, labels, n, gap, cell):
+    """:func:`joined_labels` (``n``: the number of labels; ``cell``: the BEV cell edge, at
+    least ``gap``)."""
+    m = xy.shape[0]
+    lo0, lo1 = xy[0, 0], xy[0, 1]
+    for i in range(m):
+        lo0, lo1 = min(lo0, xy[i, 0]), min(lo1, xy[i, 1])
+    keys = np.empty(m, np.int64)
+    for i in range(m):
+        keys[i] = (np.int64(np.floor((xy[i, 0] - lo0) / cell)) << 32) | np.int64(np.floor((xy[i, 1] - lo1) / cell))
+    slot_keys, slot_cell, shift, cell_of, cell_keys = number_keys(keys)
+    start, order = grouped_positions(cell_of, cell_keys.shape[0])
+    parent = np.arange(n)
+    g2 = gap * gap
+    for c in range(cell_keys.shape[0]):
+        ci, cj = cell_keys[c] >> 32, cell_keys[c] & 0xFFFFFFFF
+        for step in range(5):  # the cell itself and four of its neighbours: each pair of cells once
+            di, dj = (0, 0) if step == 0 else ((0, 1) if step == 1 else ((1, -1) if step == 2 else
+                                                                       ((1, 0) if step == 3 else (1, 1))))
+            if cj + dj < 0:
+                continue
+            other = slot_cell[find_slot(slot_keys, slot_cell, shift, ((ci + di) << 32) | (cj + dj))]
+            if other == -1:
+                continue
+            for u in range(start[c], start[c + 1]):
+                i = order[u]
+                first = u + 1 if other == c else start[other]
+                for w in range(first, start[other + 1]):
+                    j = order[w]
+                    a, b = _root(parent, labels[i]), _root(parent, labels[j])
+                    if a == b:
+                        continue
+                    d0, d1 = xy[i, 0] - xy[j, 0], xy[i, 1] - xy[j, 1]
+                    if d0 * d0 + d1 * d1 <= g2:
+                        parent[max(a, b)] = min(a, b)
+    # number the components in the order of their smallest label (SciPy's connected_components)
+    number = np.full(n, -1, np.int64)
+    out = np.empty(n, np.int64)
+    count = 0
+    for a in range(n):
+        r = _root(parent, a)
+        if number[r] == -1:
+            number[r] = count
+            count += 1
+        out[a] = number[r]
+    result = np.empty(m, np.int64)
+    for i in range(m):
+        result[i] = out[labels[i]]
+    return result
+
+
+def joined_labels(xy: np.ndarray, labels: np.ndarray, gap: float) -> np.ndarray:
+    """(M,) the ``labels`` (0..n-1) of the BEV points ``xy`` (M,2, m) with every two labels
+    that have points within ``gap`` (m, distance <= gap) of each other merged, numbered
+    from 0 in the order of each merged group's smallest label: what SciPy's
+    ``connected_components`` gives on the graph of ``cKDTree(xy).query_pairs(gap)``'s
+    pairs across labels, without listing the pairs (a dense object within 0.4 m has tens of
+    thousands): points bucketed by BEV cell, and a pair of points is measured only while
+    their labels are still apart (union-find)."""
+    xy = np.ascontiguousarray(xy, dtype=np.float64)
+    labels = np.ascontiguousarray(labels, dtype=np.int64)
+    if len(xy) == 0:
+        return labels.copy()
+    if not (gap > 0 and np.isfinite(xy).all() and np.ptp(xy, axis=0).max() / gap < 2.0 ** 30):
+        raise ValueError("joined_labels needs finite points spanning fewer than 2^30 gaps and a positive gap")
+    return _joined_labels(xy, labels, int(labels.max()) + 1, float(gap), float(gap) * (1.0 + 1e-9))
 
 
 class CubeIndex:

@@ -69,6 +69,7 @@ import numpy as np
 from flowslam.geometry import rigid_flow, transform_points
 from flowslam.config.ssf import ObjectRefinementConfig
 from flowslam.sceneflow.refinement.compiled_icp import IcpTarget, register, register_point_to_plane
+from flowslam.sceneflow.refinement.compiled_neighbourhoods import joined_labels
 from flowslam.sceneflow.refinement.clusters import ScanSurface, bev_clusters, bev_extent, in_bounds, lowest_per_cell
 from flowslam.sceneflow.refinement.visibility import baseline_window_margins
 
@@ -1422,28 +1423,13 @@ def _joined_components(p: np.ndarray, c: ObjectRefinementConfig,
     ``min_points``)."""
     labels = bev_clusters(p, c.instance_cell_m)
     if gap > c.instance_cell_m:
-        labels = _joined_within(p[:, :2], labels, gap)
+        labels = joined_labels(p[:, :2], labels, gap)  # components with points within gap merged
     counts = np.bincount(labels)
     order = np.argsort(-counts, kind="stable")
     big = order[counts[order] >= c.min_points]
     if big.size == 0:
         big = order[:1]
     return np.where(np.isin(labels, big), labels, big[0]), big
-
-
-def _joined_within(xy: np.ndarray, labels: np.ndarray, gap: float) -> np.ndarray:
-    """(M,) ``labels`` (components of the BEV points ``xy``, m) with the components that
-    have points within ``gap`` (m) of each other merged, renumbered from 0."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    pairs = cKDTree(xy).query_pairs(gap, output_type="ndarray")
-    a, b = labels[pairs[:, 0]], labels[pairs[:, 1]]
-    across = a != b
-    n = int(labels.max()) + 1
-    graph = coo_matrix((np.ones(np.count_nonzero(across)), (a[across], b[across])), shape=(n, n))
-    return connected_components(graph, directed=False)[1][labels]
 
 
 def _on_own_surface(ego: np.ndarray, landing: np.ndarray, kept: np.ndarray, solid: np.ndarray,
