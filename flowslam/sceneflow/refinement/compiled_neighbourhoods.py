@@ -343,16 +343,19 @@ def _gap(q, low, edge):
 
 
 @njit(cache=True, nogil=True)
-def _offer(points, members, first, last, q0, q1, q2, r2, k, found, best, nb):
-    """Offers the points ``members[first:last]`` to the sorted ``k`` best (squared
+def _offer(grouped, members, first, last, q0, q1, q2, r2, k, found, best, nb):
+    """Offers the points ``grouped[first:last]`` (the points in cube order: point
+    ``members[m]`` is ``grouped[m]``) to the sorted ``k`` best (squared
     distances ``best``, indices ``nb``; ``found`` of them filled) of the query (q0, q1, q2)
     within squared radius ``r2`` (equal distances: the lower index first); returns the new
     ``found``."""
     for m in range(first, last):
-        j = members[m]
-        d0, d1, d2 = q0 - points[j, 0], q1 - points[j, 1], q2 - points[j, 2]
+        d0, d1, d2 = q0 - grouped[m, 0], q1 - grouped[m, 1], q2 - grouped[m, 2]
         sq = d0 * d0 + d1 * d1 + d2 * d2
-        if sq >= r2 or (found == k and (sq > best[k - 1] or (sq == best[k - 1] and j > nb[k - 1]))):
+        if sq >= r2:
+            continue
+        j = members[m]
+        if found == k and (sq > best[k - 1] or (sq == best[k - 1] and j > nb[k - 1])):
             continue
         pos = found if found < k else k - 1
         while pos > 0 and (best[pos - 1] > sq or (best[pos - 1] == sq and nb[pos - 1] > j)):
@@ -367,12 +370,13 @@ def _offer(points, members, first, last, q0, q1, q2, r2, k, found, best, nb):
 
 
 @njit(cache=True, nogil=True)
-def _knn_rings(points, x, radius, k, lo, top, edge, slot_keys, slot_cell, shift, start, members):
+def _knn_rings(n, grouped, x, radius, k, lo, top, edge, slot_keys, slot_cell, shift, start, members):
     """:meth:`CubeIndex.query`: for each query, the cubes (edge ``edge``) in rings of growing
     Chebyshev distance around its own, each ring's cubes nearest first, until the nearest
     point of the next cube or ring could not be nearer than the k-th found (with a margin
-    for rounding) or lies beyond ``radius`` (``top``: the largest cube number per axis)."""
-    n = points.shape[0]
+    for rounding) or lies beyond ``radius`` (``top``: the largest cube number per axis; ``n``:
+    the number of points; ``grouped``: the points in cube order, ``members[m]`` being
+    ``grouped[m]``)."""
     nb = np.full((x.shape[0], k), n, np.int64)
     dist = np.full((x.shape[0], k), np.inf)
     best = np.empty(k)
@@ -423,7 +427,7 @@ def _knn_rings(points, x, radius, k, lo, top, edge, slot_keys, slot_cell, shift,
             for t in range(count):
                 if found == k and bounds[t] > best[k - 1] * slack:
                     break
-                found = _offer(points, members, start[cubes[t]], start[cubes[t] + 1], q0, q1, q2, r2, k, found,
+                found = _offer(grouped, members, start[cubes[t]], start[cubes[t] + 1], q0, q1, q2, r2, k, found,
                                best, row)
             # every point not visited yet lies at least ``margin`` away
             margin = min(q0 - (lo[0] + (f0 - ring) * edge), lo[0] + (f0 + ring + 1) * edge - q0,
@@ -529,6 +533,7 @@ class CubeIndex:
         self.points, self.edge, self.lo = points, float(edge), lo
         self.top = np.floor((hi - lo) / self.edge)  # the largest cube number per axis
         slot_keys, slot_cell, shift, _, start, members, _ = _cubes(points, np.arange(len(points)), lo, self.edge)
+        self._grouped = np.ascontiguousarray(points[members])  # the points cube by cube: searches read them in order
         self._cubes = (slot_keys, slot_cell, shift, start, members)
 
     @classmethod
@@ -546,7 +551,8 @@ class CubeIndex:
         x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3)
         if len(x) == 0 or k == 0:
             return np.zeros((len(x), k)), np.zeros((len(x), k), np.int64)
-        nb, dist = _knn_rings(self.points, x, float(radius), k, self.lo, self.top, self.edge, *self._cubes)
+        nb, dist = _knn_rings(len(self.points), self._grouped, x, float(radius), k, self.lo, self.top, self.edge,
+                              *self._cubes)
         return dist, nb
 
 
