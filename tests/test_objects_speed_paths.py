@@ -278,7 +278,8 @@ def test_joined_labels_equal_the_components_of_the_pairs_within_the_gap():
         np.testing.assert_array_equal(joined_labels(p[:, :2], labels, gap), _joined_by_pairs(p[:, :2], labels, gap))
     street = _street(12, 6000)
     labels = bev_clusters(street, 0.3)
-    np.testing.assert_array_equal(joined_labels(street[:, :2], labels, 0.8), _joined_by_pairs(street[:, :2], labels, 0.8))
+    xy = street[:, :2]
+    np.testing.assert_array_equal(joined_labels(xy, labels, 0.8), _joined_by_pairs(xy, labels, 0.8))
     # two points exactly the gap apart are joined (query_pairs' "at most r"); a hair farther, not
     xy = np.array([[0.0, 0.0], [0.5, 0.0], [1.5, 0.0]])
     assert list(joined_labels(xy, np.array([0, 1, 2]), 0.5)) == [0, 0, 1]
