@@ -590,7 +590,7 @@ class RigidStaticFlowStage:
             return
         p, static = state.prev.points, state.static
         state.flow = state.flow.copy()
-        state.flow[static] = geometry.rigid_flow(state.estimate.T_curr_prev, p[static])
+        state.flow[static] = geometry.rigid_flow(state.estimate.T_curr_prev, np.compress(static, p, axis=0))
 
 
 def build_stages(config: SsfConfig, flow_odometry: FlowOdometryConfig) -> list[Stage]:
