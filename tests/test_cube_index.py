@@ -79,3 +79,10 @@ def test_scan_surface_nearest_and_normals_equal_the_kd_tree_paths(kitti_scan):
         np.testing.assert_array_equal(got, expected)
     idx = np.random.default_rng(8).integers(0, len(points), 3000)
     np.testing.assert_array_equal(kitti_scan.normals(idx, 1.0), plane_normals(tree, points, idx, 1.0))
+
+
+def test_cube_index_refuses_a_radius_that_is_not_positive():
+    index = CubeIndex.build(np.zeros((3, 3)), 0.3)
+    for radius in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError):
+            index.query(np.zeros((1, 3)), 1, radius)

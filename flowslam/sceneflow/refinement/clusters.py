@@ -294,7 +294,7 @@ class ScanSurface:
             self._has_normal[:] = False
         todo = np.unique(idx[~self._has_normal[idx]])
         if todo.size:
-            dist, nb = self.query(self.points[todo], NORMAL_NEIGHBOURS, radius)
+            dist, nb = self.query(self.points[todo], min(NORMAL_NEIGHBOURS, len(self.points)), radius)
             self._normals[todo] = neighbourhood_normals(self.points, nb.reshape(len(todo), -1),
                                                         dist.reshape(len(todo), -1))[0]
             self._has_normal[todo] = True
