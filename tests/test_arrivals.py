@@ -76,8 +76,6 @@ def test_the_objects_stage_makes_the_arriving_car_move_with_the_image_and_surfac
     """Three scans of the car driving towards the sensor; the network calls every point
     static. After pair (0, 1) the stage keeps scan 1's range image and surface, and pair
     (1, 2) asks them: the car moves, at its speed; with ``arrivals: false`` it stays static."""
-    from scipy.spatial import cKDTree
-
     from flowslam.config import SsfConfig
     from flowslam.frame import Frame
     from flowslam.sceneflow.refinement.static import RefinedFlow
@@ -90,8 +88,7 @@ def test_the_objects_stage_makes_the_arriving_car_move_with_the_image_and_surfac
         """The pair (k-1, k) at the true poses, its static refinement accepted, every point static."""
         s = _stage_state(frames, [_pose(i) for i in range(3)], k, 1)
         T_ego, points = s.estimate.T_curr_prev, s.prev.points
-        s.refined = RefinedFlow(np.zeros((0, 3)), np.zeros((0, 3)), T_ego, True, s.frame.points,
-                                target_tree=cKDTree(s.frame.points))
+        s.refined = RefinedFlow(np.zeros((0, 3)), np.zeros((0, 3)), T_ego, True, s.frame.points)
         s.flow, s.static = geometry.rigid_flow(T_ego, points), np.ones(len(points), dtype=bool)
         return s
 

@@ -323,7 +323,7 @@ def test_network_movers_beside_the_sensor_land_on_the_full_scan_k():
     assert not np.isfinite(target_tree.query(ego, distance_upper_bound=0.3)[0]).any()  # the tree alone: no surface
 
     c = ObjectRefinementConfig()
-    result = refine_objects(prev, flow, flagged.copy(), curr, T_EGO, DT, c, target_tree=target_tree,
+    result = refine_objects(prev, flow, flagged.copy(), curr, T_EGO, DT, c, target_points=refinement_target,
                             above_ground=_above(prev, c))
     assert not result.dynamic[flagged].any()
     assert np.allclose(result.flow[flagged], geometry.rigid_flow(T_EGO, car))

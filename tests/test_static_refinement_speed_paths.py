@@ -117,7 +117,7 @@ def test_near_any_and_fitness_equal_the_kd_tree(kitti_target, radius):
     tree = cKDTree(kitti_target)
     moved = kitti_target[::5] + rng.normal(scale=0.5, size=(len(kitti_target[::5]), 3))
     share = np.isfinite(tree.query(moved, distance_upper_bound=radius)[0]).mean()
-    assert _fitness(tree, moved, radius) == share
+    assert _fitness(kitti_target, moved, radius) == share
     on_radius = np.array([[radius, 0.0, 0.0], [0.0, 0.0, 0.0]])
     np.testing.assert_array_equal(_near_any(on_radius, np.zeros((1, 3)), radius), [False, True])
 

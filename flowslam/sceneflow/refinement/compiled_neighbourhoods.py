@@ -39,7 +39,7 @@ from numba import njit
 from flowslam.compiled_hash import find_slot, grouped_positions, number_keys
 
 __all__ = ["CubeIndex", "box_points", "gathered_covariances", "joined_labels", "knn_within", "near_any_points",
-           "neighbourhood_normals"]
+           "neighbourhood_normals", "within_any"]
 
 
 @njit(cache=True, nogil=True)
@@ -254,6 +254,20 @@ def near_any_points(points: np.ndarray, x: np.ndarray, radius: float) -> np.ndar
     if bounds is None:
         return None  # (non-finite queries: the caller's KD-tree refuses them, as before)
     return _near_any(np.ascontiguousarray(points, dtype=np.float64), x, float(radius), *bounds)
+
+
+def within_any(x: np.ndarray, points: np.ndarray, radius: float, tree=None) -> np.ndarray:
+    """(M,) bool: one of ``points`` (N,3) closer than ``radius`` to each ``x`` (M,3, same
+    frame and units): :func:`near_any_points`, or where that declines the query of ``tree``
+    (a SciPy ``cKDTree`` over ``points``, built here when None): the same answers."""
+    near = near_any_points(points, x, radius)
+    if near is not None:
+        return near
+    if tree is None:
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(points, balanced_tree=False, compact_nodes=False)  # built once, queried once: cheap build
+    return np.isfinite(tree.query(x, distance_upper_bound=radius)[0])
 
 
 

@@ -69,7 +69,7 @@ import numpy as np
 from flowslam.geometry import rigid_flow, transform_points
 from flowslam.config.ssf import ObjectRefinementConfig
 from flowslam.sceneflow.refinement.compiled_icp import IcpTarget, register, register_point_to_plane
-from flowslam.sceneflow.refinement.compiled_neighbourhoods import joined_labels
+from flowslam.sceneflow.refinement.compiled_neighbourhoods import joined_labels, within_any
 from flowslam.sceneflow.refinement.clusters import ScanSurface, bev_clusters, bev_extent, in_bounds, lowest_per_cell
 from flowslam.sceneflow.refinement.visibility import baseline_window_margins
 
@@ -453,7 +453,7 @@ def refine_objects(
     T_ego: np.ndarray,
     dt: float,
     config: ObjectRefinementConfig | None = None,
-    target_tree=None,
+    target_points: np.ndarray | None = None,
     movers: np.ndarray | None = None,
     seen_through: np.ndarray | None = None,
     surface: ScanSurface | None = None,
@@ -470,8 +470,9 @@ def refine_objects(
     ``flow`` (N,3) is the network's flow, ``dynamic`` (N,) its labels, ``dt`` the scan
     interval (s). In the result, static points have the ego-rigid flow of ``T_ego``,
     registered objects their own rigid flow, other dynamic points the network's flow (with
-    ``flat_motion``, every dynamic point's flow keeps its ego landing's height). ``target_tree``
-    may be a ``scipy.spatial.cKDTree`` over (a downsampling of) ``target``. ``movers`` and
+    ``flat_motion``, every dynamic point's flow keeps its ego landing's height). ``target_points``
+    (frame k) may be a downsampling of ``target`` (the static refinement's) for the test of
+    the dynamic points outside every object (default: ``target``). ``movers`` and
     ``seen_through`` (N,) bool: geometric motion evidence
     (:func:`flowslam.sceneflow.refinement.visibility.geometric_movers`); movers become candidates, and
     objects with seen-through points also start ICP from shifted ego landings
@@ -485,17 +486,15 @@ def refine_objects(
     object without geometric movers or seen-through points stays static when scan k hides
     where the ego motion puts it (:func:`_static_where_hidden`).
     """
-    from scipy.spatial import cKDTree
-
     c = config or ObjectRefinementConfig()
-    if target_tree is None:
-        target_tree = cKDTree(target)
+    if target_points is None:
+        target_points = target
     if surface is None:
         surface = ScanSurface(target, object_target_range(c))
     movers = np.zeros(len(source), dtype=bool) if movers is None else np.asarray(movers, dtype=bool)
     seen = np.zeros(len(source), dtype=bool) if seen_through is None else np.asarray(seen_through, dtype=bool)
     interval = scan_interval(dt)
-    scene = (source, T_ego, interval, target_tree, seen, surface, above_ground, range_image, c)
+    scene = (source, T_ego, interval, target_points, seen, surface, above_ground, range_image, c)
     result = _refine_round(np.array(flow, dtype=np.float64), np.array(dynamic, dtype=bool), movers, *scene)
     changes = []
     while len(changes) + 1 < c.iterations:
@@ -567,7 +566,7 @@ def hold_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarra
 
 
 def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, source: np.ndarray, T_ego: np.ndarray,
-                  interval: float, target_tree, seen: np.ndarray, surface: ScanSurface,
+                  interval: float, target_points: np.ndarray, seen: np.ndarray, surface: ScanSurface,
                   above_ground: np.ndarray | None, range_image, c: ObjectRefinementConfig) -> ObjectRefinement:
     """One round of :func:`refine_objects` (its arguments, prepared; ``flow`` and ``dynamic``
     are updated in place and returned in the result)."""
@@ -631,13 +630,13 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     flow[still], dynamic[still] = rigid_flow(T_ego, source[still]), False
     # the rest of the network's dynamic points: static if the ego motion lands them on a surface
     # of scan k; those outside the candidates' range (in no object) ask every point of scan k,
-    # since the refinement's target tree lacks the target points near the network's dynamic
+    # since the refinement's target points lack those near the network's dynamic
     # landings, which is where a false flag's ego landings lie
     rest = np.flatnonzero(dynamic & ~settled)
     on_surface = np.zeros(0, dtype=bool)
     if rest.size:
         rigid = transform_points(T_ego, source[rest])
-        on_surface = np.isfinite(target_tree.query(rigid, distance_upper_bound=c.off_surface_m)[0])
+        on_surface = within_any(rigid, target_points, c.off_surface_m)
         outside = np.flatnonzero(~near[rest] & ~on_surface)
         on_surface[outside] = surface.near_any(rigid[outside], c.off_surface_m)
         if range_image is not None and c.hidden_rest_free_share > 0:

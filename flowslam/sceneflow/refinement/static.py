@@ -39,7 +39,7 @@ from flowslam.config.ssf import FlowRefinementConfig
 from flowslam.geometry import transform_points
 from flowslam.sceneflow.refinement.clusters import neighbourhood_covariances
 from flowslam.sceneflow.refinement.compiled_icp import IcpTarget, nearest_within, register_point_to_plane
-from flowslam.sceneflow.refinement.compiled_neighbourhoods import gathered_covariances, knn_within, near_any_points
+from flowslam.sceneflow.refinement.compiled_neighbourhoods import gathered_covariances, knn_within, within_any
 from flowslam.sceneflow.refinement.symmetric3 import smallest_eigenvectors, symmetric_eigenvalues
 
 __all__ = ["RefinedFlow", "refine_static_flow"]
@@ -63,8 +63,6 @@ class RefinedFlow:
     accepted: bool
     target_points: np.ndarray
     stats: dict = field(default_factory=dict)
-    target_tree: object = None
-    """``scipy.spatial.cKDTree`` of ``target_points``; always set when ``accepted``."""
     scene_points: np.ndarray | None = None
     """The downsampled static points of scan k-1 (M,3, frame k-1), snapped or not: the
     scene whose geometry the odometry's degeneracy check judges."""
@@ -100,24 +98,11 @@ def _target_centroids(points: np.ndarray, voxel: float, max_range: float) -> np.
 
 def _near_any(points: np.ndarray, others: np.ndarray, radius: float) -> np.ndarray:
     """(N,) bool: ``points`` (N,3) with one of ``others`` (M,3, same frame) closer than
-    ``radius`` (m) (:func:`_within`; KITTI 0-15 replay: 8.8 -> 3.9 ms against SciPy's KD-tree)."""
+    ``radius`` (m) (:func:`~flowslam.sceneflow.refinement.compiled_neighbourhoods.within_any`; KITTI 0-15
+    replay: 8.8 -> 3.9 ms against SciPy's KD-tree)."""
     if len(others) == 0:
         return np.zeros(len(points), dtype=bool)
-    return _within(points, others, radius)
-
-
-def _within(x: np.ndarray, points: np.ndarray, radius: float, tree=None) -> np.ndarray:
-    """(M,) bool: one of ``points`` (N,3) closer than ``radius`` (m) to each ``x`` (M,3, same
-    frame). Compiled (``near_any_points``: cubes of edge ``radius``); where that declines,
-    the query of ``tree`` (a cKDTree over ``points``, built here when None): the same answers."""
-    from scipy.spatial import cKDTree
-
-    near = near_any_points(points, x, radius)
-    if near is not None:
-        return near
-    if tree is None:
-        tree = cKDTree(points, balanced_tree=False, compact_nodes=False)  # built once, queried once: cheap build
-    return np.isfinite(tree.query(x, distance_upper_bound=radius)[0])
+    return within_any(points, others, radius)
 
 
 def _covariances(points: np.ndarray, radius: float, max_nn: int = 20, tree=None) -> np.ndarray:
@@ -168,7 +153,7 @@ def _flat_and_spread(values: np.ndarray, c: FlowRefinementConfig) -> tuple[np.nd
 def _planar_points(points: np.ndarray, c: FlowRefinementConfig, tree=None) -> tuple[np.ndarray, np.ndarray]:
     """The points (N,3, m) whose neighbourhood (``normal_radius_m``, at most 20 points) is a
     plane (:func:`_flat_and_spread`) and their unit normals (``tree``: a cKDTree over
-    ``points``, built here when None). A neighbourhood that is flat but a line (one ring's
+    ``points`` for the searches the compiled one declines, built there when None). A neighbourhood that is flat but a line (one ring's
     stretch: ``min_plane_spread``) is asked again within ``line_radius_m`` (at most
     ``LINE_NEIGHBOURS`` points), and the point keeps that plane's normal when it is one.
 
@@ -178,9 +163,6 @@ def _planar_points(points: np.ndarray, c: FlowRefinementConfig, tree=None) -> tu
     radial direction (on a 32-beam sensor: a pitch every step, docs/sceneflow_evaluation.md,
     stop 35). Points with fewer than 3 neighbours get the identity covariance (as Open3D
     gives them): never planar."""
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(points) if tree is None else tree
     cov = _covariances(points, c.normal_radius_m, tree=tree)
     values = symmetric_eigenvalues(cov)
     flat, spread = _flat_and_spread(values, c)
@@ -209,10 +191,11 @@ def _icp(src_points: np.ndarray, target: IcpTarget, normals: np.ndarray, T_init:
     return register_point_to_plane(src_points, target, normals, T_init, c.correspondence_m, c.max_iterations)
 
 
-def _fitness(target_tree, x: np.ndarray, reach: float) -> float:
-    """Share of the moved source points ``x`` (M,3, frame k) with a point of ``target_tree``
-    (a cKDTree) closer than ``reach`` (m) (:func:`_within`)."""
-    return float(_within(x, target_tree.data, reach, target_tree).mean())
+def _fitness(target: np.ndarray, x: np.ndarray, reach: float) -> float:
+    """Share of the moved source points ``x`` (M,3, frame k) with a point of ``target``
+    (N,3, frame k) closer than ``reach`` (m)
+    (:func:`~flowslam.sceneflow.refinement.compiled_neighbourhoods.within_any`)."""
+    return float(within_any(x, target, reach).mean())
 
 
 def _snap(x: np.ndarray, target: IcpTarget, normals: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
@@ -240,8 +223,6 @@ def refine_static_flow(
     landing spots), ``static_mask`` (N,) the predicted static points, ``T_init`` the
     motion ``T_{k,k-1}`` registered from the predicted static flow.
     """
-    from scipy.spatial import cKDTree
-
     c = config or FlowRefinementConfig()
     static_mask = np.asarray(static_mask, dtype=bool)
     src_points = _voxel_centroids(source, c.voxel_m, c.max_range_m, static_mask)
@@ -261,8 +242,7 @@ def refine_static_flow(
     empty = np.zeros((0, 3))
     if len(src_points) < 10 or len(tgt_points) < 10:
         return RefinedFlow(empty, empty, T_init.copy(), False, tgt_points, dict(stats, refine_reason="too few points"))
-    target_tree = cKDTree(tgt_points)  # the overlap counts every surface, planar or not
-    planar, normals = _planar_points(tgt_points, c, target_tree)  # ICP and snapping use these only
+    planar, normals = _planar_points(tgt_points, c)  # ICP and snapping use these only
     stats["refine_target_not_planar"] = len(tgt_points) - len(planar)
     if len(planar) < 10:
         return RefinedFlow(empty, empty, T_init.copy(), False, tgt_points,
@@ -274,12 +254,12 @@ def refine_static_flow(
     p = src_points
     x = transform_points(T, p)
     reach = c.correspondence_m[-1]
-    fitness = _fitness(target_tree, x, reach)
+    fitness = _fitness(tgt_points, x, reach)  # the overlap counts every surface, planar or not
     stats.update(refine_fitness=fitness, refine_correction_m=float(np.linalg.norm(T[:3, 3] - T_init[:3, 3])))
     if fitness < c.min_fitness:
         return RefinedFlow(empty, empty, T, False, tgt_points,
-                           dict(stats, refine_reason=f"fitness {fitness:.2f} < {c.min_fitness}"), target_tree)
+                           dict(stats, refine_reason=f"fitness {fitness:.2f} < {c.min_fitness}"))
     ok, q = _snap(x, planar_target, normals, reach)
     d = q - x[ok]
     stats["refine_plane_rmse_m"] = float(np.sqrt(np.mean(np.einsum("ij,ij->i", d, d))))
-    return RefinedFlow(p[ok], q - p[ok], T, True, tgt_points, stats, target_tree, p)
+    return RefinedFlow(p[ok], q - p[ok], T, True, tgt_points, stats, p)
