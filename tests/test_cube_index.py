@@ -86,3 +86,14 @@ def test_cube_index_refuses_a_radius_that_is_not_positive():
     for radius in (0.0, -1.0, float("nan")):
         with pytest.raises(ValueError):
             index.query(np.zeros((1, 3)), 1, radius)
+
+
+def test_within_any_asks_the_tree_where_the_cube_search_declines():
+    from flowslam.sceneflow.refinement.compiled_neighbourhoods import near_any_points, within_any
+
+    points = np.array([[0.0, 0.0, 0.0], [2e6, 0.0, 0.0], [0.5, 0.0, 0.0]])
+    x = np.array([[0.2, 0.0, 0.0], [2e6 + 0.3, 0.0, 0.0], [-1e6, 0.0, 0.0], [0.75, 0.0, 0.0]])  # 3e6 m wide
+    assert near_any_points(points, x, 0.25) is None  # too many cubes of 0.25 m for the packed keys
+    expected = np.isfinite(cKDTree(points).query(x, distance_upper_bound=0.25)[0])
+    np.testing.assert_array_equal(within_any(x, points, 0.25), expected)
+    np.testing.assert_array_equal(expected, [True, False, False, False])

@@ -153,9 +153,10 @@ def _flat_and_spread(values: np.ndarray, c: FlowRefinementConfig) -> tuple[np.nd
 def _planar_points(points: np.ndarray, c: FlowRefinementConfig, tree=None) -> tuple[np.ndarray, np.ndarray]:
     """The points (N,3, m) whose neighbourhood (``normal_radius_m``, at most 20 points) is a
     plane (:func:`_flat_and_spread`) and their unit normals (``tree``: a cKDTree over
-    ``points`` for the searches the compiled one declines, built there when None). A neighbourhood that is flat but a line (one ring's
-    stretch: ``min_plane_spread``) is asked again within ``line_radius_m`` (at most
-    ``LINE_NEIGHBOURS`` points), and the point keeps that plane's normal when it is one.
+    ``points`` for the searches the compiled one declines, built there when None). A
+    neighbourhood that is flat but a line (one ring's stretch: ``min_plane_spread``) is
+    asked again within ``line_radius_m`` (at most ``LINE_NEIGHBOURS`` points), and the
+    point keeps that plane's normal when it is one.
 
     Leaving the non-planar points out removed most of the bias of the steps on simulated dt
     (pitch +0.0018 -> +0.0006 deg, x -0.78 -> -0.11 mm per step; docs/mapping.md); a line's
