@@ -24,7 +24,15 @@ thread) spent per frame with the cores it kept busy on average (CPU time / wall 
 for each other; a rate near it says only less work per frame makes it faster.
 
     python tools/bench_ssf_pipeline.py [SEQUENCE] [--runs 3] [--threads N] [--frames 16] [--skip-stages]
-        [--weights W] [--from F]
+        [--weights W] [--from F] [--ab ssf.KEY=VALUE ...]
+
+``--ab ssf.objects.max_iterations=10`` (repeatable; dotted run-config names, YAML values)
+runs only an A/B of ``ssf`` options instead: two frontends, the default (A) and one with
+the options (B), are fed every frame alternately (which goes first alternates frame by
+frame and run by run), so that both share the machine's drift, which on these VMs is
+often larger than the effect measured; the report gives each stage's median in both, the
+median of the per-frame ratios B/A, and whether the two gave identical outputs (flow,
+static mask, motion) on every frame.
 
 ``--weights`` runs every ``ssf`` configuration with those network weights (e.g. from
 ``flowslam adapt``) instead of the shipped ones. ``--from F`` still runs every frame but
@@ -85,6 +93,55 @@ def run_once(frames, options: dict, network: dict, first: int = 1) -> tuple[list
     return totals, stages
 
 
+def _same_output(a, b) -> bool:
+    """Whether two ``FrontendOutput`` have identical flow, static mask and motion."""
+    return all((x is None and y is None) or (x is not None and y is not None and np.array_equal(x, y))
+               for x, y in ((a.flow, b.flow), (a.static_mask, b.static_mask), (a.T_prev_curr, b.T_prev_curr)))
+
+
+def run_ab(frames, overrides: dict, network: dict, runs: int, first: int = 1) -> tuple[dict, bool]:
+    """``--ab`` (module doc): per frame ``first``.. (>= 1), the ``process`` time and the stage
+    times (ms) of the default ``ssf`` (``"A"``) and of one with ``overrides`` (``"B"``, dotted
+    run-config names, as :func:`flowslam.config.load_config` takes them), as
+    ``{"A": [{stage: ms}, ...], "B": [...]}``; and whether their outputs were identical on
+    every frame. Each frontend gets its own copy of the frame."""
+    import copy
+
+    from flowslam.config import load_config
+    from flowslam.frontends.ssf import SsfFrontend
+
+    base = {f"ssf.network.{k}": v for k, v in network.items()}
+    configs = {"A": load_config(frontend="ssf", **base).ssf, "B": load_config(frontend="ssf", **base, **overrides).ssf}
+    laps: dict[str, list[dict]] = {"A": [], "B": []}
+    same = True
+    for run in range(runs):
+        frontends = {name: SsfFrontend(config) for name, config in configs.items()}
+        for k, frame in enumerate(frames):
+            outputs = {}
+            for name in ("A", "B") if (k + run) % 2 == 0 else ("B", "A"):
+                mine = copy.deepcopy(frame)
+                t0 = time.perf_counter()
+                outputs[name] = frontends[name].process(mine)
+                ms = 1e3 * (time.perf_counter() - t0)
+                if k >= first:
+                    laps[name].append({"process": ms, **outputs[name].stats.get("stage_ms", {})})
+            same &= _same_output(outputs["A"], outputs["B"])
+    return laps, same
+
+
+def print_ab(laps: dict, same: bool, overrides: dict) -> None:
+    """The report of :func:`run_ab`."""
+    print("A: default ssf; B: " + ", ".join(f"{k}={v}" for k, v in overrides.items()))
+    for stage in laps["A"][0]:
+        pairs = [(a[stage], b[stage]) for a, b in zip(laps["A"], laps["B"]) if stage in a and stage in b]
+        ratios = [b / a for a, b in pairs if a > 0]
+        a_ms, b_ms = statistics.median(p[0] for p in pairs), statistics.median(p[1] for p in pairs)
+        ratio = f"{statistics.median(ratios):.3f}" if ratios else "-"
+        print(f"{stage:>13}: A {a_ms:7.1f} ms, B {b_ms:7.1f} ms (medians of {len(pairs)} frames); "
+              f"median per-frame B/A {ratio}")
+    print(f"outputs identical on every frame: {'yes' if same else 'no'}")
+
+
 END_TO_END = {
     "ssf lookahead": ("ssf", {}),
     "ssf sequential": ("ssf", {"ssf": {"lookahead": False}}),
@@ -130,6 +187,9 @@ def main() -> None:
     ap.add_argument("--weights", type=Path, default=None, help="network weights of ssf (default: shipped)")
     ap.add_argument("--from", dest="first", type=int, default=1, help="count frames from this one on (all run)")
     ap.add_argument("--skip-stages", action="store_true", help="only the end-to-end rates")
+    ap.add_argument("--ab", action="append", default=[], metavar="KEY=VALUE",
+                    help="only an A/B: the default ssf against ssf with these options (dotted, e.g. "
+                         "ssf.objects.max_iterations=10), frame by frame")
     args = ap.parse_args()
 
     from flowslam.datasets import open_dataset
@@ -142,6 +202,13 @@ def main() -> None:
     print(f"{args.sequence.name}: {len(frames)} frames (counted from {first}), median {n_points} points; "
           f"weights {args.weights or 'shipped'}; threads {args.threads or 'default'}; "
           f"load average {os.getloadavg()[0]:.2f}; " + " ".join(f"{k}={v}" for k, v in THREAD_ENV.items()))
+    if args.ab:
+        import yaml
+
+        overrides = {k: yaml.safe_load(v) for k, v in (item.split("=", 1) for item in args.ab)}
+        print_ab(*run_ab(frames, overrides, network, args.runs, first), overrides)
+        print(f"load average after: {os.getloadavg()[0]:.2f}")
+        return
     for name, options in ({} if args.skip_stages else CONFIGS).items():
         totals, stages = [], {}
         for _ in range(args.runs):
