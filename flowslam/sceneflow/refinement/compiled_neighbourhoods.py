@@ -256,17 +256,16 @@ def near_any_points(points: np.ndarray, x: np.ndarray, radius: float) -> np.ndar
     return _near_any(np.ascontiguousarray(points, dtype=np.float64), x, float(radius), *bounds)
 
 
-def within_any(x: np.ndarray, points: np.ndarray, radius: float, tree=None) -> np.ndarray:
+def within_any(x: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
     """(M,) bool: one of ``points`` (N,3) closer than ``radius`` to each ``x`` (M,3, same
-    frame and units): :func:`near_any_points`, or where that declines the query of ``tree``
-    (a SciPy ``cKDTree`` over ``points``, built here when None): the same answers."""
+    frame and units): :func:`near_any_points`, or where that declines the query of a SciPy
+    ``cKDTree`` over ``points``: the same answers."""
     near = near_any_points(points, x, radius)
     if near is not None:
         return near
-    if tree is None:
-        from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree
 
-        tree = cKDTree(points, balanced_tree=False, compact_nodes=False)  # built once, queried once: cheap build
+    tree = cKDTree(points, balanced_tree=False, compact_nodes=False)  # built once, queried once: cheap build
     return np.isfinite(tree.query(x, distance_upper_bound=radius)[0])
 
 
@@ -274,15 +273,9 @@ def within_any(x: np.ndarray, points: np.ndarray, radius: float, tree=None) -> n
 @njit(cache=True, nogil=True)
 def _knn_within(points, idx, radius, k, lo):
     """:func:`knn_within` (``lo``: the points' minimum per column)."""
-    slot_keys, slot_cell, shift, cube_keys, start, members, cell_of = _cubes(points, np.arange(points.shape[0]), lo,
-                                                                             radius)
-    return _knn_query(points, idx, radius, k, slot_keys, slot_cell, shift, cube_keys, start, members, cell_of)
-
-
-@njit(cache=True, nogil=True)
-def _knn_query(points, idx, radius, k, slot_keys, slot_cell, shift, cube_keys, start, members, cell_of):
-    """:func:`knn_within` from the points' cubes of edge ``radius`` (:func:`_cubes` of all of them)."""
     n_points = points.shape[0]
+    # the points bucketed by cube of edge ``radius``
+    slot_keys, slot_cell, shift, cube_keys, start, members, cell_of = _cubes(points, np.arange(n_points), lo, radius)
     cells = cube_keys.shape[0]
     # the queries grouped by cube: each cube's 27-cube neighbourhood is gathered once
     n = idx.shape[0]
