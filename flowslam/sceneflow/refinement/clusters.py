@@ -20,8 +20,8 @@ from flowslam.sceneflow.refinement.compiled_neighbourhoods import (
     CubeIndex,
     box_points,
     gathered_covariances,
-    near_any_points,
     neighbourhood_normals,
+    within_any,
 )
 
 __all__ = [
@@ -40,7 +40,6 @@ __all__ = [
     "plane_normals",
 ]
 
-_SQRT3 = float(np.sqrt(3.0))
 _NEIGHBOURS_3X3 = np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1)], dtype=np.int64)
 NORMAL_NEIGHBOURS = 20
 """Neighbours (at most) whose principal axes give a point's tangent-plane normal."""
@@ -263,28 +262,9 @@ class ScanSurface:
         return self.query(x, 1, radius)
 
     def near_any(self, x: np.ndarray, radius: float) -> np.ndarray:
-        """(M,) bool: some point of the scan lies within ``radius`` of each query ``x`` (M,3).
-
-        Exact: :func:`~flowslam.sceneflow.refinement.compiled_neighbourhoods.near_any_points`
-        (the scan bucketed by cube of edge ``radius``). Where the queries span too many such
-        cubes: queries sharing a voxel of edge ``radius / sqrt(3)`` with a scan point are
-        within ``radius`` of it (the voxel's diagonal); only the others search the KD-tree."""
-        hit = np.zeros(len(x), dtype=bool)
-        if len(x) == 0 or len(self.points) == 0:
-            return hit
-        near = near_any_points(self.points, x, radius)
-        if near is not None:
-            return near
-        cell = radius / _SQRT3 * (1.0 - 1e-9)
-        lo, hi = x.min(axis=0), x.max(axis=0)
-        shape = dense_grid_shape(lo, hi, cell)
-        if shape is not None:
-            inside = in_bounds(self.points, lo, hi)
-            grid = grid_occupancy(self.points[inside], lo, cell, shape)
-            hit = grid[grid_voxel_ids(x, lo, cell, shape)]
-        rest = np.flatnonzero(~hit)
-        hit[rest] = np.isfinite(self.tree.query(x[rest], distance_upper_bound=radius)[0])
-        return hit
+        """(M,) bool: some point of the scan lies within ``radius`` of each query ``x`` (M,3):
+        :func:`~flowslam.sceneflow.refinement.compiled_neighbourhoods.within_any`."""
+        return within_any(x, self.points, radius)
 
     def normals(self, idx: np.ndarray, radius: float) -> np.ndarray:
         """(len(idx),3) tangent-plane normals of points ``idx`` (:func:`plane_normals` with

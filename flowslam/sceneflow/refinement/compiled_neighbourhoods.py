@@ -271,6 +271,23 @@ def within_any(x: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
+def _kept(sq, j, k, found, best, nb):
+    """Offers point ``j`` at squared distance ``sq`` to the sorted ``k`` best of a query
+    (squared distances ``best``, indices ``nb``; ``found`` of them filled; equal distances:
+    the lower index first); returns the new ``found``."""
+    if found == k and (sq > best[k - 1] or (sq == best[k - 1] and j > nb[k - 1])):
+        return found
+    pos = found if found < k else k - 1
+    while pos > 0 and (best[pos - 1] > sq or (best[pos - 1] == sq and nb[pos - 1] > j)):
+        best[pos] = best[pos - 1]
+        nb[pos] = nb[pos - 1]
+        pos -= 1
+    best[pos] = sq
+    nb[pos] = j
+    return found + 1 if found < k else found
+
+
+@njit(cache=True, nogil=True)
 def _knn_within(points, idx, radius, k, lo):
     """:func:`knn_within` (``lo``: the points' minimum per column)."""
     n_points = points.shape[0]
@@ -304,22 +321,13 @@ def _knn_within(points, idx, radius, k, lo):
             i = queries[qq]
             q0, q1, q2 = points[idx[i], 0], points[idx[i], 1], points[idx[i], 2]
             found = 0
+            row = nb[i]
             for m in range(count):
                 j = near[m]
                 d0, d1, d2 = q0 - points[j, 0], q1 - points[j, 1], q2 - points[j, 2]
                 sq = d0 * d0 + d1 * d1 + d2 * d2
-                if sq >= r2 or (found == k and (sq > best[k - 1] or (sq == best[k - 1] and j > nb[i, k - 1]))):
-                    continue
-                # insert into the sorted best (equal distances: the lower index first)
-                pos = found if found < k else k - 1
-                while pos > 0 and (best[pos - 1] > sq or (best[pos - 1] == sq and nb[i, pos - 1] > j)):
-                    best[pos] = best[pos - 1]
-                    nb[i, pos] = nb[i, pos - 1]
-                    pos -= 1
-                best[pos] = sq
-                nb[i, pos] = j
-                if found < k:
-                    found += 1
+                if sq < r2:
+                    found = _kept(sq, j, k, found, best, row)
             for f in range(found):
                 dist[i, f] = np.sqrt(best[f])
     return nb, dist
@@ -367,20 +375,8 @@ def _offer(grouped, members, first, last, q0, q1, q2, r2, k, found, best, nb):
     for m in range(first, last):
         d0, d1, d2 = q0 - grouped[m, 0], q1 - grouped[m, 1], q2 - grouped[m, 2]
         sq = d0 * d0 + d1 * d1 + d2 * d2
-        if sq >= r2:
-            continue
-        j = members[m]
-        if found == k and (sq > best[k - 1] or (sq == best[k - 1] and j > nb[k - 1])):
-            continue
-        pos = found if found < k else k - 1
-        while pos > 0 and (best[pos - 1] > sq or (best[pos - 1] == sq and nb[pos - 1] > j)):
-            best[pos] = best[pos - 1]
-            nb[pos] = nb[pos - 1]
-            pos -= 1
-        best[pos] = sq
-        nb[pos] = j
-        if found < k:
-            found += 1
+        if sq < r2:
+            found = _kept(sq, members[m], k, found, best, nb)
     return found
 
 
