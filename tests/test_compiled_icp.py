@@ -109,6 +109,35 @@ def test_register_without_correspondences_keeps_the_start():
     np.testing.assert_allclose(_open3d(car, box, start, [1.0, 0.3], 15), start, atol=0)
 
 
+def _turn_deg(T: np.ndarray, start: np.ndarray) -> float:
+    """Angle (deg) of the rotation from ``start``'s to ``T``'s."""
+    R = T[:3, :3] @ start[:3, :3].T
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def test_register_gives_up_when_an_iteration_turns_beyond_the_limit():
+    """A sparse L-shaped object whose only target is itself turned 25 deg about its corner:
+    the free ICP turns it that far; with a 10 deg limit the registration is given up
+    (None); with a 60 deg limit, which it never reaches, the result is the free one bit for
+    bit; the car scene's 3 deg motion passes a 10 deg limit unchanged."""
+    rng = np.random.default_rng(7)
+    arm = rng.uniform(0.0, 1.5, 40)
+    obj = np.vstack([np.column_stack([arm, np.zeros(40), rng.uniform(0, 0.3, 40)]),
+                     np.column_stack([np.zeros(40), arm, rng.uniform(0, 0.3, 40)])])
+    turned = transform_points(geometry.from_euler("z", np.radians(25.0)), obj)
+    start = np.eye(4)
+    free = register(obj, IcpTarget(turned), start, [1.0, 0.3], 15)
+    assert abs(_turn_deg(free, start) - 25.0) < 0.5
+    assert register(obj, IcpTarget(turned), start, [1.0, 0.3], 15, max_turn_rad=np.radians(10.0)) is None
+    limited = register(obj, IcpTarget(turned), start, [1.0, 0.3], 15, max_turn_rad=np.radians(60.0))
+    np.testing.assert_array_equal(limited, free)
+    car, box, motion = _car_scene(0)
+    car_start = geometry.from_euler("z", 0.0, t=[1.0, 0.0, 0.0])
+    np.testing.assert_array_equal(register(car, IcpTarget(box), car_start, [1.0, 0.3, 0.1], 15,
+                                           max_turn_rad=np.radians(10.0)),
+                                  register(car, IcpTarget(box), car_start, [1.0, 0.3, 0.1], 15))
+
+
 def _open3d_point_to_plane(p, target, normals, T, stages, iterations):
     """Open3D's Tukey point-to-plane ICP (kernel = the stage's distance), once per stage."""
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))

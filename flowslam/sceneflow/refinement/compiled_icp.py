@@ -15,7 +15,10 @@ matched share of the source, inlier RMSE = root mean squared distance of the mat
 each iteration solves the rigid motion of the matches in closed form (Umeyama's SVD
 without scale; identity when nothing matched), moves the source by it and composes
 ``T <- update @ T``, and stops after ``max_iterations`` or when fitness and RMSE each
-changed by less than the relative thresholds. Tests compare it with Open3D's.
+changed by less than the relative thresholds. Tests compare it with Open3D's. Optionally
+(``max_turn_rad``) a registration is given up as soon as an iteration turns it farther than
+a limit from its start's rotation (not in Open3D: the objects stage's limit on how far an
+object may turn in one scan).
 
 Point-to-plane with a Tukey kernel (:func:`register_point_to_plane`), for the static
 refinement (:mod:`flowslam.sceneflow.refinement.static`): Open3D's
@@ -227,13 +230,17 @@ def _moved(T, x):
 
 
 @njit(cache=True, nogil=True)
-def _register(p, T, stages, max_iterations, relative_fitness, relative_rmse, normals, kernel,
+def _register(p, T, stages, max_iterations, relative_fitness, relative_rmse, normals, kernel, min_trace,
               ordered, start, end, axis, left, right, lo, hi):
     """The ICP loop of :func:`register` and :func:`register_point_to_plane`: Open3D's
     correspondences and stopping rule per stage; each update point-to-point (Umeyama)
     when ``normals`` is empty, else point-to-plane with a Tukey kernel of ``kernel`` (m;
-    <= 0: the stage's distance) on the tree-ordered ``normals``."""
+    <= 0: the stage's distance) on the tree-ordered ``normals``. Returns (T, turned):
+    ``turned`` when an iteration left the rotation of T farther from the start's than
+    ``min_trace`` allows (the trace of the relative rotation, 1 + 2 cos(angle), fell below
+    it), where the loop stops."""
     n = p.shape[0]
+    R0 = T[:3, :3].copy()
     src = np.empty(n, np.int64)
     dst = np.empty(n, np.int64)
     stack = np.empty(2 * len(start) + 2, np.int64)
@@ -248,12 +255,24 @@ def _register(p, T, stages, max_iterations, relative_fitness, relative_rmse, nor
             else:
                 update = _rigid(x, ordered, src, dst, m)
             T = update @ T
+            if min_trace > -1.0 and _turn_trace(T, R0) < min_trace:
+                return T, True
             x = _moved(update, x)
             previous_fitness, previous_rmse = fitness, rmse
             m, fitness, rmse = _match(x, max_dist, ordered, start, end, axis, left, right, lo, hi, stack, src, dst, hints)
             if abs(previous_fitness - fitness) < relative_fitness and abs(previous_rmse - rmse) < relative_rmse:
                 break
-    return T
+    return T, False
+
+
+@njit(cache=True, nogil=True)
+def _turn_trace(T, R0):
+    """Trace of the rotation from ``R0`` (3,3) to T's (1 + 2 cos of the angle between them)."""
+    total = 0.0
+    for r in range(3):
+        for c in range(3):
+            total += T[r, c] * R0[r, c]
+    return total
 
 
 class IcpTarget:
@@ -266,14 +285,27 @@ class IcpTarget:
 
 
 def register(p: np.ndarray, target: IcpTarget, T: np.ndarray, stages, max_iterations: int,
-             relative_fitness: float = 1e-6, relative_rmse: float = 1e-6) -> np.ndarray:
+             relative_fitness: float = 1e-6, relative_rmse: float = 1e-6,
+             max_turn_rad: float | None = None) -> np.ndarray | None:
     """Point-to-point ICP of ``p`` (N,3) onto ``target`` from ``T`` (4,4), once per
     correspondence distance in ``stages`` (m, coarse to fine), each stage at most
-    ``max_iterations`` iterations of Open3D's rule (module doc); returns the final 4x4 T."""
+    ``max_iterations`` iterations of Open3D's rule (module doc); returns the final 4x4 T.
+    With ``max_turn_rad``: None as soon as an iteration turns T's rotation farther than
+    that (rad) from the start's (the registration is given up)."""
     ordered, _, start, end, axis, left, right, lo, hi = target._tree
-    return _register(np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(T, dtype=np.float64),
-                     np.asarray(stages, dtype=np.float64), int(max_iterations), float(relative_fitness),
-                     float(relative_rmse), _NO_NORMALS, 0.0, ordered, start, end, axis, left, right, lo, hi)
+    T, turned = _register(np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(T, dtype=np.float64),
+                          np.asarray(stages, dtype=np.float64), int(max_iterations), float(relative_fitness),
+                          float(relative_rmse), _NO_NORMALS, 0.0, _min_trace(max_turn_rad), ordered, start, end, axis,
+                          left, right, lo, hi)
+    return None if turned else T
+
+
+def _min_trace(max_turn_rad: float | None) -> float:
+    """The smallest trace of a relative rotation within ``max_turn_rad`` (rad) of none;
+    -1 (every rotation's trace is at least that) for no limit."""
+    if max_turn_rad is None or not max_turn_rad < np.pi:
+        return -1.0
+    return 1.0 + 2.0 * float(np.cos(max_turn_rad))
 
 
 _NO_NORMALS = np.zeros((0, 3))
@@ -393,8 +425,8 @@ def register_point_to_plane(p: np.ndarray, target: IcpTarget, normals: np.ndarra
     tree_normals = np.ascontiguousarray(np.asarray(normals, dtype=np.float64)[order])
     return _register(np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(T, dtype=np.float64),
                      np.asarray(stages, dtype=np.float64), int(max_iterations), float(relative_fitness),
-                     float(relative_rmse), tree_normals, -1.0 if kernel is None else float(kernel),
-                     ordered, start, end, axis, left, right, lo, hi)
+                     float(relative_rmse), tree_normals, -1.0 if kernel is None else float(kernel), -1.0,
+                     ordered, start, end, axis, left, right, lo, hi)[0]
 
 
 @njit(cache=True, nogil=True)

@@ -94,7 +94,7 @@ class ObjectRefinement:
 
 
 
-def _register(p: np.ndarray, target: IcpTarget, T: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
+def _register(p: np.ndarray, target: IcpTarget, T: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray | None:
     """Point-to-point ICP of an object's points ``p`` onto ``target`` (its box's
     :class:`~flowslam.sceneflow.refinement.compiled_icp.IcpTarget`, one KD-tree shared by
     every start) from ``T``, coarse to fine (``correspondence_m``, each stage at most
@@ -103,8 +103,12 @@ def _register(p: np.ndarray, target: IcpTarget, T: np.ndarray, c: ObjectRefineme
     Point-to-point, not point-to-plane: normals of a few hundred sparse ring points are
     unreliable (measured: point-to-plane diverged on several simulated objects, and as a
     last stage of every start it let wrong starts win on the real AV2 pair). See
-    :func:`_polish` for the one point-to-plane step that is used."""
-    return register(p, target, T, c.correspondence_m, c.max_iterations, ICP_RELATIVE_CHANGE, ICP_RELATIVE_CHANGE)
+    :func:`_polish` for the one point-to-plane step that is used.
+
+    None when an iteration turns the object farther than ``max_turn_rad`` (> 0) from the
+    start's rotation (given up)."""
+    return register(p, target, T, c.correspondence_m, c.max_iterations, ICP_RELATIVE_CHANGE, ICP_RELATIVE_CHANGE,
+                    max_turn_rad=c.max_turn_rad or None)
 
 
 def _near_landing(box: np.ndarray, p: np.ndarray, T: np.ndarray, max_dist: float) -> np.ndarray:
@@ -160,8 +164,8 @@ def _best_icp(p: np.ndarray, tgt: IcpTarget, surface: ScanSurface, starts: list[
     """ICP of ``p`` onto the target box ``tgt`` from each start;
     the best (:func:`_pick`, ``prefer_first``) by fitness and RMSE against ``surface`` of the
     results that keep the object's centroid on the ground (not :func:`_lifted` from its
-    ``T_ego`` landing): (T, fitness, rmse, start). When every result lifts it: (the first
-    start, 0, inf, the first start).
+    ``T_ego`` landing) and were not given up for turning (``max_turn_rad``): (T, fitness,
+    rmse, start). When there is none: (the first start, 0, inf, the first start).
 
     With ``prefer_first``, a first result whose fitness is within :func:`_fitness_margin` of
     1 is kept without registering the other starts: none can then beat it by that margin,
@@ -171,7 +175,7 @@ def _best_icp(p: np.ndarray, tgt: IcpTarget, surface: ScanSurface, starts: list[
     centroid = p.mean(axis=0)
     for i, T_start in enumerate(starts):
         T = _register(p, tgt, T_start, c)
-        if _lifts_centroid(T, centroid, T_ego, c):
+        if T is None or _lifts_centroid(T, centroid, T_ego, c):
             continue
         results.append((T, *_score(p, T, surface, c), T_start))
         if prefer_first and i == 0 and results[0][1] + _fitness_margin(results[0][1], len(p), c) >= 1.0:
@@ -723,12 +727,13 @@ def _parts_holding(source: np.ndarray, members: np.ndarray, core: np.ndarray, c:
 
 def _refit(q: np.ndarray, motion: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> np.ndarray:
     """``motion`` refined by :func:`_register` of the points ``q`` (frame k-1) onto scan k's
-    points around their landing (``margin_m``)."""
+    points around their landing (``margin_m``); ``motion`` itself where that gives up."""
     landing = transform_points(motion, q)
     box = surface.in_box(landing.min(axis=0) - c.margin_m, landing.max(axis=0) + c.margin_m)
     if len(box) < c.min_points:
         return motion
-    return _register(q, IcpTarget(box), motion, c)
+    refitted = _register(q, IcpTarget(box), motion, c)
+    return motion if refitted is None else refitted
 
 
 def _joins(source: np.ndarray, members: np.ndarray, taken: np.ndarray, motion: np.ndarray, T_ego: np.ndarray,
