@@ -131,7 +131,7 @@ def test_register_gives_up_when_an_iteration_turns_beyond_the_limit():
     assert register(obj, IcpTarget(turned), start, [1.0, 0.3], 15, max_turn_rad=np.radians(10.0)) is None
     limited = register(obj, IcpTarget(turned), start, [1.0, 0.3], 15, max_turn_rad=np.radians(60.0))
     np.testing.assert_array_equal(limited, free)
-    car, box, motion = _car_scene(0)
+    car, box, _ = _car_scene(0)
     car_start = geometry.from_euler("z", 0.0, t=[1.0, 0.0, 0.0])
     np.testing.assert_array_equal(register(car, IcpTarget(box), car_start, [1.0, 0.3, 0.1], 15,
                                            max_turn_rad=np.radians(10.0)),
