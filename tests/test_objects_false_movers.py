@@ -297,7 +297,7 @@ def test_a_parked_car_hidden_by_a_passing_car_of_its_cluster_stays_static():
 def test_network_movers_beside_the_sensor_land_on_the_full_scan_k():
     """A parked car's side 1.75 m beside the sensor, within ``min_range_m`` (so in no
     object), flagged dynamic by the network with a flow 6 cm off the ego motion's. Its ego
-    landings lie on scan k's surface, but the static refinement's target tree lacks every
+    landings lie on scan k's surface, but the static refinement's target points lack every
     scan-k point near the network's dynamic landings -- exactly there. Against the whole of
     scan k the points are static (simulated `dt` 381: 886 false dynamic points of such a
     car in one pair)."""

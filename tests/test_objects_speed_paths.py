@@ -68,9 +68,9 @@ def test_near_any_is_exact_against_a_kd_tree_query():
         assert 0 < got.sum() < len(got)  # both answers occur
 
 
-def test_near_any_falls_back_to_the_grid_and_tree_where_the_cubes_do_not_fit(monkeypatch):
-    """Queries spanning more cubes than the packed keys count take the dense grid and KD-tree
-    path, with the same exact answer (the limit lowered here to force it); so do non-finite
+def test_near_any_falls_back_to_the_tree_where_the_cubes_do_not_fit(monkeypatch):
+    """Queries spanning more cubes than the packed keys count take the KD-tree path
+    (``within_any``), with the same exact answer (the limit lowered here to force it); so do non-finite
     queries, which SciPy's tree refuses."""
     from flowslam.sceneflow.refinement import compiled_neighbourhoods
 

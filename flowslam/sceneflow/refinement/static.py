@@ -99,9 +99,8 @@ def _target_centroids(points: np.ndarray, voxel: float, max_range: float) -> np.
 def _near_any(points: np.ndarray, others: np.ndarray, radius: float) -> np.ndarray:
     """(N,) bool: ``points`` (N,3) with one of ``others`` (M,3, same frame) closer than
     ``radius`` (m) (:func:`~flowslam.sceneflow.refinement.compiled_neighbourhoods.within_any`; KITTI 0-15
-    replay: 8.8 -> 3.9 ms against SciPy's KD-tree)."""
-    if len(others) == 0:
-        return np.zeros(len(points), dtype=bool)
+    replay: 8.8 -> 3.9 ms against SciPy's KD-tree; a step of its own for
+    ``tools/bench_static_refinement.py``)."""
     return within_any(points, others, radius)
 
 
