@@ -1,6 +1,6 @@
 """The objects stage's compiled ICP (``flowslam.sceneflow.refinement.compiled_icp``) equals
 Open3D's point-to-point ``registration_icp`` run stage by stage with the same criteria, and
-its KD-tree finds the same nearest points as SciPy's. Metres throughout."""
+its search grid finds the same nearest points as SciPy's KD-tree. Metres throughout."""
 
 from __future__ import annotations
 
@@ -84,12 +84,11 @@ def test_nearest_within_reach_equals_scipy(n):
         points[n // 2:] = points[: n - n // 2]  # every point twice
         points[: n // 4, 2] = 0.0  # a flat patch
     target = IcpTarget(points)
-    ordered, order = target._tree[0], target._tree[1]
+    ordered, order = target._grid[0], target._grid[1]
     queries = rng.uniform(-2.5, 2.5, (2000, 3))
     src, dst = np.empty(len(queries), np.int64), np.empty(len(queries), np.int64)
     hints = np.full(len(queries), -1, np.int64)
-    stack = np.empty(2 * len(target._tree[2]) + 2, np.int64)
-    m, fitness, rmse = compiled_icp._match(queries, 0.3, *target._tree[:1], *target._tree[2:], stack, src, dst, hints)
+    m, fitness, rmse = compiled_icp._match(queries, 0.3, ordered, *target._grid[2:], src, dst, hints)
     expected, _ = cKDTree(points).query(queries, distance_upper_bound=0.3) if n else (np.full(2000, np.inf), None)
     found = np.isfinite(expected)
     assert m == found.sum() and np.array_equal(src[:m], np.flatnonzero(found))
@@ -234,3 +233,21 @@ def test_object_polish_equals_open3d_point_to_plane_on_estimated_normals():
                                                      REG.TransformationEstimationPointToPlane(), criteria).transformation)
             np.testing.assert_allclose(transform_points(ours, car), transform_points(theirs, car), atol=1e-6)
             assert geometry.translation_norm(ours @ geometry.inv(motion)) < 0.05
+
+
+def test_nearest_within_on_a_wide_cloud_with_non_finite_points_equals_scipy():
+    """A cloud 400 m wide (its grid gets cubes larger than ``CELL_M``, within the cap),
+    with NaN and infinite target points (never matched) and queries: far outside the
+    grid, non-finite (none), on a point, and exactly at the reach (none: strictly closer)."""
+    rng = np.random.default_rng(11)
+    points = np.vstack([rng.uniform(-200, 200, (3000, 3)) * [1, 1, 0.02], [[np.nan, 0, 0], [0, np.inf, 0]]])
+    target = IcpTarget(points)
+    assert target._grid[5] > compiled_icp.CELL_M and len(target._grid[0]) == 3000
+    dims = target._grid[4]
+    assert dims.prod() <= compiled_icp.MAX_CELLS_PER_POINT * len(points) + 4096
+    queries = np.vstack([rng.uniform(-210, 210, (2000, 3)) * [1, 1, 0.05], [[1e4, 0, 0], [np.nan, 0, 0]],
+                         points[:1], points[1:2] + [2.5, 0, 0]])
+    dist, idx = cKDTree(points[:3000]).query(queries[:2000], distance_upper_bound=2.5)
+    got = compiled_icp.nearest_within(target, queries, 2.5)
+    np.testing.assert_array_equal(got[:2000], np.where(np.isfinite(dist), idx, -1))
+    assert got[2000] == -1 and got[2001] == -1 and got[2002] == 0 and got[2003] != 1

@@ -356,7 +356,7 @@ def knn_within(points: np.ndarray, idx: np.ndarray, radius: float, k: int) -> tu
     return _knn_within(points, idx, float(radius), k, bounds[0])
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _gap(q, low, edge):
     """Squared distance from coordinate ``q`` to the interval [``low``, ``low + edge``]."""
     if q < low:
