@@ -108,12 +108,12 @@ def _grid(points, edge, max_cells):
 
 @njit(cache=True, nogil=True)
 def _nearest(q0, q1, q2, max_sq, hint, ordered, start, lo, dims, edge):
-    """Index (into ``ordered``) of the nearest grid point to (q0, q1, q2) closer than sqrt(max_sq),
-    and its squared distance; (-1, max_sq) when none (or ``q`` is not finite). ``hint`` (an
-    index, or -1): a likely answer (the point's previous match), whose distance bounds the
-    search from the start. The cubes are visited in rings of growing Chebyshev distance
-    around ``q``'s own, skipping those farther than the best so far, until no cube left
-    could hold a nearer point."""
+    """Index (into ``ordered``) of the nearest grid point to the query (q0, q1, q2) closer
+    than sqrt(max_sq), and its squared distance; (-1, max_sq) when none (or the query is not
+    finite). ``hint`` (an index, or -1): a likely answer (the point's previous match), whose
+    distance bounds the search from the start. The cubes are visited in rings of growing
+    Chebyshev distance around the query's own, skipping those farther than the best so far,
+    until no cube left could hold a nearer point."""
     best, best_sq = -1, max_sq
     if not (np.isfinite(q0) and np.isfinite(q1) and np.isfinite(q2)) or ordered.shape[0] == 0:
         return best, best_sq
