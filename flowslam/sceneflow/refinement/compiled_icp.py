@@ -43,7 +43,7 @@ import numpy as np
 from numba import njit
 
 from flowslam.compiled_hash import grouped_positions
-from flowslam.sceneflow.refinement.compiled_neighbourhoods import _gap
+from flowslam.sceneflow.refinement.compiled_neighbourhoods import _gap, _ring_margin
 
 __all__ = ["IcpTarget", "register", "register_point_to_plane", "nearest_within"]
 
@@ -115,7 +115,7 @@ def _nearest(q0, q1, q2, max_sq, hint, ordered, start, lo, dims, edge):
     Chebyshev distance around the query's own, skipping those farther than the best so far,
     until no cube left could hold a nearer point."""
     best, best_sq = -1, max_sq
-    if not (np.isfinite(q0) and np.isfinite(q1) and np.isfinite(q2)) or ordered.shape[0] == 0:
+    if not (np.isfinite(q0) and np.isfinite(q1) and np.isfinite(q2)):
         return best, best_sq
     if hint >= 0:
         sq = (ordered[hint, 0] - q0) ** 2 + (ordered[hint, 1] - q1) ** 2 + (ordered[hint, 2] - q2) ** 2
@@ -150,9 +150,7 @@ def _nearest(q0, q1, q2, max_sq, hint, ordered, start, lo, dims, edge):
                         reach = best_sq * _SLACK
                     c += step
         # every cube not visited yet lies at least ``margin`` away
-        margin = min(q0 - (lo[0] + (f0 - ring) * edge), lo[0] + (f0 + ring + 1) * edge - q0,
-                     q1 - (lo[1] + (f1 - ring) * edge), lo[1] + (f1 + ring + 1) * edge - q1,
-                     q2 - (lo[2] + (f2 - ring) * edge), lo[2] + (f2 + ring + 1) * edge - q2)
+        margin = _ring_margin(q0, q1, q2, f0, f1, f2, lo, edge, ring)
         if margin > 0 and margin * margin > reach:
             break
         if ci - ring <= 0 and cj - ring <= 0 and ck - ring <= 0 and ci + ring >= top0 and cj + ring >= top1 \

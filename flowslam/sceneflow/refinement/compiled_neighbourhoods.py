@@ -365,6 +365,16 @@ def _gap(q, low, edge):
     return (q - high) * (q - high) if q > high else 0.0
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _ring_margin(q0, q1, q2, f0, f1, f2, lo, edge, ring):
+    """How far the query (q0, q1, q2), in the cube (f0, f1, f2) (floats) of a grid of edge
+    ``edge`` counted from ``lo``, lies inside the block of cubes within Chebyshev distance
+    ``ring`` of its own: every point outside that block is at least this far."""
+    return min(q0 - (lo[0] + (f0 - ring) * edge), lo[0] + (f0 + ring + 1) * edge - q0,
+               q1 - (lo[1] + (f1 - ring) * edge), lo[1] + (f1 + ring + 1) * edge - q1,
+               q2 - (lo[2] + (f2 - ring) * edge), lo[2] + (f2 + ring + 1) * edge - q2)
+
+
 @njit(cache=True, nogil=True)
 def _offer(grouped, members, first, last, q0, q1, q2, r2, k, found, best, nb):
     """Offers the points ``grouped[first:last]`` (the points in cube order: point
@@ -441,9 +451,7 @@ def _knn_rings(n, grouped, x, radius, k, lo, top, edge, slot_keys, slot_cell, sh
                 found = _offer(grouped, members, start[cubes[t]], start[cubes[t] + 1], q0, q1, q2, r2, k, found,
                                best, row)
             # every point not visited yet lies at least ``margin`` away
-            margin = min(q0 - (lo[0] + (f0 - ring) * edge), lo[0] + (f0 + ring + 1) * edge - q0,
-                         q1 - (lo[1] + (f1 - ring) * edge), lo[1] + (f1 + ring + 1) * edge - q1,
-                         q2 - (lo[2] + (f2 - ring) * edge), lo[2] + (f2 + ring + 1) * edge - q2)
+            margin = _ring_margin(q0, q1, q2, f0, f1, f2, lo, edge, ring)
             if margin >= radius or (found == k and best[k - 1] * slack < margin * margin):
                 break
             ring += 1
