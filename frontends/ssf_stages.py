@@ -475,7 +475,8 @@ class ObjectsStage:
 
         self.config = config
         self.options = config.objects
-        self.movers = MoverPrior(self.options.track_radius_m)
+        c = self.options
+        self.movers = MoverPrior(c.track_radius_m, radius_per_m=c.track_radius_per_m, max_radius_m=c.track_radius_max_m)
         self._images: dict[int, tuple] = {}
         """(range image, own ``T_world_sensor``) of the last scans by frame index: the older
         scans' free space for :func:`~flowslam.sceneflow.refinement.visibility.slow_movers`

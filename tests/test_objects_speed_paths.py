@@ -147,6 +147,37 @@ def test_mover_prior_prediction_equals_a_plain_kd_tree_search():
     assert not predicted[~expected].any()
 
 
+def test_mover_prior_reach_grows_with_range_as_a_brute_force_search_says():
+    points = _street(8)
+    rng = np.random.default_rng(9)
+    T = np.eye(4)
+    T[:3, 3] = [0.8, 0.02, 0.0]
+    dynamic = rng.random(len(points)) < 0.05
+    flow = transform_points(T, points) - points
+    prior = MoverPrior(0.15, radius_per_m=0.015, max_radius_m=0.45)
+    prior.update(points, flow, dynamic, T)
+    query = points + rng.normal(scale=0.2, size=points.shape)
+    mask, _ = prior.predict(query, T)
+    landing = prior._landing
+    dist, j = cKDTree(landing).query(query)
+    reach = np.clip(0.015 * np.hypot(landing[j, 0], landing[j, 1]), 0.15, 0.45)
+    np.testing.assert_array_equal(mask, dist <= reach)
+    far = np.hypot(landing[j, 0], landing[j, 1]) > 20
+    assert (mask & far & (dist > 0.15)).any()  # far points the flat 0.15 m reach would not take
+
+
+def test_mover_prior_reach_by_hand():
+    T = np.eye(4)
+    landing = np.array([[5.0, 0.0, 0.5], [40.0, 0.0, 0.5]])
+    prior = MoverPrior(0.15, ground_clearance_m=0.0, radius_per_m=0.01, max_radius_m=0.3)
+    prior.update(landing, np.zeros_like(landing), np.ones(2, dtype=bool), T)
+    query = landing + [0.0, 0.2, 0.0]  # 0.2 m off: beyond 0.15 m at 5 m, within 0.3 m (capped 0.4) at 40 m
+    mask, _ = prior.predict(query, T)
+    np.testing.assert_array_equal(mask, [False, True])
+    mask, _ = prior.predict(landing + [0.0, 0.31, 0.0], T)
+    assert not mask.any()
+
+
 @pytest.mark.parametrize("shared", [False, True])
 def test_mover_prior_with_a_shared_ground_keeps_the_same_movers(shared):
     points = _street(9)

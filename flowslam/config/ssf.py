@@ -646,6 +646,12 @@ class ObjectRefinementConfig(StrictModel):
     track_radius_m: float = Field(0.15, ge=0)
     """Points of the next scan this close to a mover's landing spot become candidates
     (mover tracking; 0: no carry-over)."""
+    track_radius_per_m: float = Field(0.0, ge=0)
+    """The tracking reach grows with a landing spot's horizontal range d (m), as the beams'
+    spacing does: ``clip(track_radius_per_m * d, track_radius_m, track_radius_max_m)`` (rad;
+    0: ``track_radius_m`` everywhere)."""
+    track_radius_max_m: float = Field(0.0, ge=0)
+    """The largest tracking reach (m) when ``track_radius_per_m`` is set."""
     hypotheses_m: list[float] = Field(default_factory=lambda: [-2.0, -1.0, -0.5, 0.5, 1.0, 2.0])
     """Objects with seen-through points also start ICP from the ego landing shifted by
     these distances along their principal (BEV) axis."""

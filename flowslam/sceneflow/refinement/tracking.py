@@ -31,10 +31,17 @@ class MoverPrior:
     landing spot become dynamic candidates with the predicted flow
     ``T_{k+1,k} p - p + R_{k+1,k} m`` (the ICP's start), so that an object found once
     keeps being refined even where the network misses it.
+
+    The reach of a landing spot grows with its horizontal range ``d`` (m) from the sensor,
+    as the beams' spacing does: ``clip(radius_per_m * d, radius_m, max(radius_m, max_radius_m))``
+    (``radius_per_m`` 0: ``radius_m`` everywhere). A point is a candidate when it lies within
+    the reach of its nearest landing spot.
     """
 
-    def __init__(self, radius_m: float = 0.15, ground_cell_m: float = 2.0, ground_clearance_m: float = 0.25):
+    def __init__(self, radius_m: float = 0.15, ground_cell_m: float = 2.0, ground_clearance_m: float = 0.25,
+                 radius_per_m: float = 0.0, max_radius_m: float = 0.0):
         self.radius_m = radius_m
+        self.radius_per_m, self.max_radius_m = radius_per_m, max_radius_m
         self.ground_cell_m, self.ground_clearance_m = ground_cell_m, ground_clearance_m
         self._landing: np.ndarray | None = None
         self._motion: np.ndarray | None = None
@@ -76,12 +83,13 @@ class MoverPrior:
         return mask, flow
 
     def _near_landing(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Indices of the ``points`` within ``radius_m`` of a landing spot, and of their nearest
-        landing spot. Exact: only points in a voxel (edge ``radius_m``) next to a landing
-        spot's voxel can be that close, and only they search the KD-tree."""
+        """Indices of the ``points`` within the reach of their nearest landing spot, and of that
+        spot. Exact: only points in a voxel (edge: the largest reach) next to a landing spot's
+        voxel can be that close, and only they search the KD-tree."""
         from scipy.spatial import cKDTree
 
-        r = self.radius_m
+        reach = self._reach()
+        r = self.radius_m if reach is None else float(reach.max())
         lo, hi = self._landing.min(axis=0) - r, self._landing.max(axis=0) + r
         inside = np.flatnonzero(in_bounds(points, lo, hi))
         shape = dense_grid_shape(lo, hi, r) if r > 0 else None
@@ -90,4 +98,13 @@ class MoverPrior:
             inside = inside[grid[grid_voxel_ids(points[inside], lo, r, shape)]]
         dist, j = cKDTree(self._landing).query(points[inside], distance_upper_bound=r)
         hit = np.isfinite(dist)
+        if reach is not None:
+            hit[hit] = dist[hit] <= reach[j[hit]]
         return inside[hit], j[hit]
+
+    def _reach(self) -> np.ndarray | None:
+        """(M,) reach (m) of each landing spot, or None where it is ``radius_m`` everywhere."""
+        if self.radius_per_m <= 0 or self.max_radius_m <= self.radius_m:
+            return None
+        d = np.hypot(self._landing[:, 0], self._landing[:, 1])
+        return np.clip(self.radius_per_m * d, self.radius_m, self.max_radius_m)
