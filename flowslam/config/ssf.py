@@ -656,7 +656,8 @@ class ObjectRefinementConfig(StrictModel):
     KITTI objects stage 1.057-1.059x slower (rule: 1.05): ~3x the tracked candidates there
     (docs/sceneflow_evaluation.md)."""
     track_radius_max_m: float = Field(0.0, ge=0)
-    """The largest tracking reach (m) when ``track_radius_per_m`` is set."""
+    """The largest tracking reach (m) when ``track_radius_per_m`` is set (at most
+    ``track_radius_m``: no growth)."""
     hypotheses_m: list[float] = Field(default_factory=lambda: [-2.0, -1.0, -0.5, 0.5, 1.0, 2.0])
     """Objects with seen-through points also start ICP from the ego landing shifted by
     these distances along their principal (BEV) axis."""
