@@ -128,42 +128,30 @@ def test_dilated_grid_covers_every_point_within_one_voxel():
     assert grid[np.ravel_multi_index(ijk.T, shape)].all()
 
 
-def test_mover_prior_prediction_equals_a_plain_kd_tree_search():
+@pytest.mark.parametrize("per_m, max_m", [(0.0, 0.0), (0.015, 0.45)])
+def test_mover_prior_prediction_equals_a_plain_kd_tree_search(per_m, max_m):
+    """Flat reach (0.15 m) and one that grows with the landing spot's range, against SciPy."""
     points = _street(8)
     rng = np.random.default_rng(8)
     T = np.eye(4)
     T[:3, 3] = [0.8, 0.02, 0.0]
     dynamic = rng.random(len(points)) < 0.05
     flow = transform_points(T, points) - points + rng.normal(scale=0.3, size=points.shape)
-    prior = MoverPrior(0.15)
+    prior = MoverPrior(0.15, radius_per_m=per_m, max_radius_m=max_m)
     prior.update(points, flow, dynamic, T)
     query = points + rng.normal(scale=0.1, size=points.shape)
     mask, predicted = prior.predict(query, T)
-    dist, j = cKDTree(prior._landing).query(query, distance_upper_bound=0.15)
-    expected = np.isfinite(dist)
-    np.testing.assert_array_equal(mask, expected)
-    q = query[expected]
-    np.testing.assert_allclose(predicted[expected], transform_points(T, q) - q + prior._motion[j[expected]] @ T[:3, :3].T)
-    assert not predicted[~expected].any()
-
-
-def test_mover_prior_reach_grows_with_range_as_a_brute_force_search_says():
-    points = _street(8)
-    rng = np.random.default_rng(9)
-    T = np.eye(4)
-    T[:3, 3] = [0.8, 0.02, 0.0]
-    dynamic = rng.random(len(points)) < 0.05
-    flow = transform_points(T, points) - points
-    prior = MoverPrior(0.15, radius_per_m=0.015, max_radius_m=0.45)
-    prior.update(points, flow, dynamic, T)
-    query = points + rng.normal(scale=0.2, size=points.shape)
-    mask, _ = prior.predict(query, T)
     landing = prior._landing
     dist, j = cKDTree(landing).query(query)
-    reach = np.clip(0.015 * np.hypot(landing[j, 0], landing[j, 1]), 0.15, 0.45)
-    np.testing.assert_array_equal(mask, dist <= reach)
-    far = np.hypot(landing[j, 0], landing[j, 1]) > 20
-    assert (mask & far & (dist > 0.15)).any()  # far points the flat 0.15 m reach would not take
+    ranges = np.hypot(landing[j, 0], landing[j, 1])
+    expected = dist <= (np.clip(per_m * ranges, 0.15, max_m) if per_m else 0.15)
+    np.testing.assert_array_equal(mask, expected)
+    q = query[expected]
+    np.testing.assert_allclose(predicted[expected],
+                               transform_points(T, q) - q + prior._motion[j[expected]] @ T[:3, :3].T)
+    assert not predicted[~expected].any()
+    if per_m:
+        assert (mask & (ranges > 20) & (dist > 0.15)).any()  # far points the flat 0.15 m reach would not take
 
 
 def test_mover_prior_reach_by_hand():
