@@ -476,7 +476,8 @@ class ObjectsStage:
         self.config = config
         self.options = config.objects
         c = self.options
-        self.movers = MoverPrior(c.track_radius_m, radius_per_m=c.track_radius_per_m, max_radius_m=c.track_radius_max_m)
+        self.movers = MoverPrior(c.track_radius_m, radius_per_m=c.track_radius_per_m, max_radius_m=c.track_radius_max_m,
+                                 grow_max_extent_m=c.track_grow_max_extent_m)
         self._images: dict[int, tuple] = {}
         """(range image, own ``T_world_sensor``) of the last scans by frame index: the older
         scans' free space for :func:`~flowslam.sceneflow.refinement.visibility.slow_movers`
@@ -517,7 +518,7 @@ class ObjectsStage:
         kept = np.array([o["accepted"] or o.get("unregistered", False) for o in objects.objects] + [False])
         state.flow, state.static = objects.flow, ~objects.dynamic
         state.instance = np.where(kept[objects.instance], objects.instance, -1)
-        self.movers.update(prev, objects.flow, objects.dynamic, T_ego, ground)
+        self.movers.update(prev, objects.flow, objects.dynamic, T_ego, ground, state.instance)
         state.stats.update(objects.stats, tracked_candidates=int(tracked.sum()), tracked_held=held)
 
     def _keep_image(self, state: PairState, image) -> None:

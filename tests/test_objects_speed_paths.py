@@ -20,7 +20,7 @@ from flowslam.sceneflow.refinement.clusters import (
     lowest_per_cell,
     plane_normals,
 )
-from flowslam.sceneflow.refinement.tracking import MoverPrior
+from flowslam.sceneflow.refinement.tracking import MoverPrior, small_instances
 from flowslam.sceneflow.refinement.clusters import bev_extent
 
 
@@ -164,6 +164,30 @@ def test_mover_prior_reach_by_hand():
     np.testing.assert_array_equal(mask, [False, True])
     mask, _ = prior.predict(landing + [0.0, 0.31, 0.0], T)
     assert not mask.any()
+
+
+def test_small_instances_by_their_bev_box():
+    points = np.array([[0.0, 0.0, 0.0], [0.6, 0.8, 2.0],  # instance 3: diagonal 1.0 m (height ignored)
+                       [10.0, 0.0, 0.0], [13.0, 4.0, 0.0],  # instance 0: 5.0 m
+                       [20.0, 0.0, 0.0]])  # no instance
+    instance = np.array([3, 3, 0, 0, -1])
+    np.testing.assert_array_equal(small_instances(points, instance, 1.0), [True, True, False, False, False])
+    np.testing.assert_array_equal(small_instances(points, instance, 5.0), [True, True, True, True, False])
+    assert not small_instances(points, np.full(5, -1), 9.0).any()
+
+
+def test_mover_prior_grows_the_reach_of_small_objects_only():
+    T = np.eye(4)
+    # at 40 m: a walker (instance 0, 0.5 m wide) and a car (instance 1, 4.3 m wide); one unlabelled mover
+    landing = np.array([[40.0, 0.0, 0.5], [40.0, 0.5, 0.5], [40.0, 10.0, 0.5], [44.0, 12.0, 0.5], [40.0, -10.0, 0.5]])
+    instance = np.array([0, 0, 1, 1, -1])
+    prior = MoverPrior(0.15, ground_clearance_m=0.0, radius_per_m=0.01, max_radius_m=0.3, grow_max_extent_m=1.0)
+    prior.update(landing, np.zeros_like(landing), np.ones(5, dtype=bool), T, instance=instance)
+    mask, _ = prior.predict(landing + [0.2, 0.0, 0.0], T)  # 0.2 m off: within the grown 0.3 m only
+    np.testing.assert_array_equal(mask, [True, True, False, False, False])
+    prior.update(landing, np.zeros_like(landing), np.ones(5, dtype=bool), T)  # no instances: all grow
+    mask, _ = prior.predict(landing + [0.2, 0.0, 0.0], T)
+    assert mask.all()
 
 
 @pytest.mark.parametrize("shared", [False, True])

@@ -658,6 +658,10 @@ class ObjectRefinementConfig(StrictModel):
     track_radius_max_m: float = Field(0.0, ge=0)
     """The largest tracking reach (m) when ``track_radius_per_m`` is set (at most
     ``track_radius_m``: no growth)."""
+    track_grow_max_extent_m: float = Field(0.0, ge=0)
+    """With ``track_radius_per_m`` set, only the landing spots of objects at most this wide
+    (m, the diagonal of the instance's BEV box) get the grown reach; larger objects and
+    dynamic points without an instance keep ``track_radius_m`` (0: every landing spot grows)."""
     hypotheses_m: list[float] = Field(default_factory=lambda: [-2.0, -1.0, -0.5, 0.5, 1.0, 2.0])
     """Objects with seen-through points also start ICP from the ego landing shifted by
     these distances along their principal (BEV) axis."""

@@ -13,13 +13,14 @@ from flowslam.geometry import rigid_flow, transform_points
 from flowslam.sceneflow.refinement.clusters import (
     LocalGround,
     above_ground,
+    bev_extent,
     dense_grid_shape,
     grid_occupancy,
     grid_voxel_ids,
     in_bounds,
 )
 
-__all__ = ["MoverPrior"]
+__all__ = ["MoverPrior", "small_instances"]
 
 
 class MoverPrior:
@@ -35,30 +36,40 @@ class MoverPrior:
     The reach of a landing spot grows with its horizontal range ``d`` (m) from the sensor,
     as the beams' spacing does: ``clip(radius_per_m * d, radius_m, max(radius_m, max_radius_m))``
     (``radius_per_m`` 0: ``radius_m`` everywhere). A point is a candidate when it lies within
-    the reach of its nearest landing spot.
+    the reach of its nearest landing spot. With ``grow_max_extent_m`` > 0 only the landing spots
+    of small objects grow so: those whose instance spans at most that many metres horizontally
+    (the diagonal of its points' BEV box in scan k-1); the others, and dynamic points without
+    an instance, keep ``radius_m``.
     """
 
     def __init__(self, radius_m: float = 0.15, ground_cell_m: float = 2.0, ground_clearance_m: float = 0.25,
-                 radius_per_m: float = 0.0, max_radius_m: float = 0.0):
+                 radius_per_m: float = 0.0, max_radius_m: float = 0.0, grow_max_extent_m: float = 0.0):
         self.radius_m = radius_m
         self.radius_per_m, self.max_radius_m = radius_per_m, max_radius_m
+        self.grow_max_extent_m = grow_max_extent_m
         self.ground_cell_m, self.ground_clearance_m = ground_cell_m, ground_clearance_m
         self._landing: np.ndarray | None = None
         self._motion: np.ndarray | None = None
+        self._grows: np.ndarray | None = None
+        """(M,) bool: the landing spots whose reach may grow (None: all)."""
 
     def update(self, source: np.ndarray, flow: np.ndarray, dynamic: np.ndarray, T_ego: np.ndarray,
-               ground: LocalGround | None = None) -> None:
+               ground: LocalGround | None = None, instance: np.ndarray | None = None) -> None:
         """Record pair (k-1, k): source points (frame k-1), flow, labels, ``T_ego`` = T_{k,k-1}.
         Ground-level points are not carried (``ground_clearance_m`` above the lowest point of
         their ``ground_cell_m`` BEV cell): the road under a mover would carry its motion on.
         ``ground``: the :class:`LocalGround` of all of ``source`` to share (used when its cell
-        is ``ground_cell_m``; else the ground of the points around the dynamic ones is built)."""
+        is ``ground_cell_m``; else the ground of the points around the dynamic ones is built).
+        ``instance``: (N,) instance ids (-1: none) for ``grow_max_extent_m`` (None: every spot may grow)."""
         idx = np.flatnonzero(dynamic)
         if idx.size and self.ground_clearance_m > 0:
             idx = idx[self._above_ground(source, idx, ground)]
         p = source[idx]
         self._landing = p + flow[idx]
         self._motion = self._landing - transform_points(T_ego, p)
+        self._grows = None
+        if self.grow_max_extent_m > 0 and instance is not None:
+            self._grows = small_instances(source, instance, self.grow_max_extent_m)[idx]
 
     def _above_ground(self, source: np.ndarray, idx: np.ndarray, ground: LocalGround | None) -> np.ndarray:
         """(len(idx),) bool: the points ``idx`` of ``source`` clear of the local ground."""
@@ -107,4 +118,19 @@ class MoverPrior:
         if self.radius_per_m <= 0 or self.max_radius_m <= self.radius_m:
             return None
         d = np.hypot(self._landing[:, 0], self._landing[:, 1])
-        return np.clip(self.radius_per_m * d, self.radius_m, self.max_radius_m)
+        reach = np.clip(self.radius_per_m * d, self.radius_m, self.max_radius_m)
+        if self._grows is not None:
+            reach[~self._grows] = self.radius_m
+        return reach
+
+
+def small_instances(points: np.ndarray, instance: np.ndarray, max_extent_m: float) -> np.ndarray:
+    """(N,) bool: the ``points`` (N,3, any frame with z up) whose instance id (``instance``,
+    (N,), -1: none) spans at most ``max_extent_m`` horizontally: the diagonal of the BEV box
+    of the instance's points. Points without an instance are False."""
+    out = np.zeros(len(points), dtype=bool)
+    has = np.flatnonzero(instance >= 0)
+    if has.size:
+        ids = instance[has]
+        out[has] = bev_extent(points[has, :2], ids, int(ids.max()) + 1)[ids] <= max_extent_m
+    return out
