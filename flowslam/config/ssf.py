@@ -147,6 +147,11 @@ class MotionEvidenceConfig(StrictModel):
     """Elevation bin of the range image."""
     window: int = Field(1, ge=0)
     """Half-size of the bin window that must all see beyond the point (1: 3x3 bins)."""
+    own_bin_from_m: float | None = Field(None, ge=0)
+    """Points whose ego-moved position lies at least this far from the sensor (horizontal
+    range, m) are seen through when their own bin sees beyond them, not the whole window:
+    far off, the window spans more than a crossing vehicle leaves in one scan (3 bins of
+    0.4 degrees: ~0.8 m at 37 m). None: the window everywhere."""
     margin_m: float = Field(0.3, ge=0)
     """A return is beyond a point at range r when farther than r + margin_m + relative_margin r ..."""
     relative_margin: float = Field(0.02, ge=0)

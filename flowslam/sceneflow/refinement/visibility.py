@@ -161,7 +161,11 @@ def geometric_movers(
     near, x = near[off], x[off]
     if near.size == 0:
         return movers, seen
-    seen[near] = (range_image or RangeImage(target, c)).sees_beyond(x)
+    range_image = range_image or RangeImage(target, c)
+    seen[near] = range_image.sees_beyond(x)
+    if c.own_bin_from_m is not None:
+        far = np.flatnonzero(np.hypot(x[:, 0], x[:, 1]) >= c.own_bin_from_m)
+        seen[near[far]] = range_image.sees_beyond(x[far], own_bin=True)
     movers = _compact_clusters(source, near, c, seen[near])
     if c.arrivals and source_image is not None:
         seeds = _compact_clusters(source, near, c)[near]  # only clusters big enough may take arrivals
