@@ -37,11 +37,11 @@ def _pair(car_step: float):
 
 
 def test_a_far_car_crossing_the_line_of_sight_is_seen_through_in_its_own_bins_only():
-    window = MotionEvidenceConfig()
+    window = MotionEvidenceConfig(own_bin_from_m=None)
     prev, car, target, T_ego = _pair(0.35)
     movers, seen = geometric_movers(prev, target, T_ego, window)
     assert seen[car].sum() < window.min_points and not movers.any()
-    own = window.model_copy(update={"own_bin_from_m": 30.0})
+    own = MotionEvidenceConfig(own_bin_from_m=30.0)
     movers, seen = geometric_movers(prev, target, T_ego, own)
     assert seen[car].sum() >= own.min_points and movers[car].sum() >= own.min_points
     assert not movers[~car].any() and not seen[~car].any()  # the wall behind it and the ground stay put
