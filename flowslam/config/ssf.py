@@ -151,7 +151,10 @@ class MotionEvidenceConfig(StrictModel):
     """Points whose ego-moved position lies at least this far from the sensor (horizontal
     range, m) are seen through when their own bin sees beyond them, not the whole window:
     far off, the window spans more than a crossing vehicle leaves in one scan (3 bins of
-    0.4 degrees: ~0.8 m at 37 m). None: the window everywhere."""
+    0.4 degrees: ~0.8 m at 37 m). None: the window everywhere. Stop 65, rule 7 (30 m, opt-in):
+    fresh ``dt`` 771 / 772 all-points instance recall +0.005 / +0.022 (clause: a mean of 0.02),
+    nothing lower inside the flow region; with the gated track reach (rule 8) fresh ``static``
+    784 called more points dynamic (docs/sceneflow_evaluation.md)."""
     margin_m: float = Field(0.3, ge=0)
     """A return is beyond a point at range r when farther than r + margin_m + relative_margin r ..."""
     relative_margin: float = Field(0.02, ge=0)
@@ -659,14 +662,16 @@ class ObjectRefinementConfig(StrictModel):
     all-points instance recall +0.023 / +0.038, region recall +0.013 / +0.021, precision
     not lower; fresh `rush-hour`, `static`, KITTI and the AV2 pair within the rule; but the
     KITTI objects stage 1.057-1.059x slower (rule: 1.05): ~3x the tracked candidates there
-    (docs/sceneflow_evaluation.md)."""
+    (docs/sceneflow_evaluation.md). Stop 65: with ``track_grow_max_extent_m`` 6 KITTI costs
+    1.02-1.04x, but rule 6 missed its mean region-recall gain (0.0097 against 0.01)."""
     track_radius_max_m: float = Field(0.0, ge=0)
     """The largest tracking reach (m) when ``track_radius_per_m`` is set (at most
     ``track_radius_m``: no growth)."""
     track_grow_max_extent_m: float = Field(0.0, ge=0)
     """With ``track_radius_per_m`` set, only the landing spots of objects at most this wide
     (m, the diagonal of the instance's BEV box) get the grown reach; larger objects and
-    dynamic points without an instance keep ``track_radius_m`` (0: every landing spot grows)."""
+    dynamic points without an instance keep ``track_radius_m`` (0: every landing spot grows).
+    Most of KITTI's extra tracked candidates come from objects wider than 6 m (stop 65)."""
     hypotheses_m: list[float] = Field(default_factory=lambda: [-2.0, -1.0, -0.5, 0.5, 1.0, 2.0])
     """Objects with seen-through points also start ICP from the ego landing shifted by
     these distances along their principal (BEV) axis."""
