@@ -46,7 +46,8 @@ def test_a_far_car_crossing_the_line_of_sight_is_seen_through_in_its_own_bins_on
     assert seen[car].sum() >= own.min_points and movers[car].sum() >= own.min_points
     assert not movers[~car].any() and not seen[~car].any()  # the wall behind it and the ground stay put
     beyond = window.model_copy(update={"own_bin_from_m": 40.0})  # the car is nearer: the window decides
-    assert np.array_equal(geometric_movers(prev, target, T_ego, beyond)[1], geometric_movers(prev, target, T_ego, window)[1])
+    seen_beyond = geometric_movers(prev, target, T_ego, beyond)[1]
+    assert np.array_equal(seen_beyond, geometric_movers(prev, target, T_ego, window)[1])
 
 
 def test_a_far_parked_car_is_not_seen_through_in_its_own_bins():
