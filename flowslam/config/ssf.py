@@ -165,6 +165,11 @@ class MotionEvidenceConfig(StrictModel):
     """BEV cell of the ground estimate (lowest point per cell)."""
     ground_clearance_m: float = Field(0.3, ge=0)
     """Points less than this above the ground estimate are never movers."""
+    max_height_m: float | None = Field(None, gt=0)
+    """Points more than this above the ground estimate are not tested either (seen-through,
+    off-surface, slow-mover and arrival tests): what moves stands lower (the simulator's box
+    truck: 3.2 m), the tree canopies that the tests flag from a sparse sensor's scans do not.
+    None: no ceiling."""
     cluster_cell_m: float = Field(0.4, gt=0)
     """BEV cell of the movers' connected-component clustering."""
     min_points: int = Field(15, ge=1)

@@ -302,9 +302,15 @@ def _pick(margin, idx: np.ndarray):
 
 def _tested(source: np.ndarray, c: MotionEvidenceConfig, ground: LocalGround | None) -> np.ndarray:
     """Indices of the points of ``source`` that both tests look at: within ``max_range_m``
-    (horizontal) and clear of the local ground (``ground``: see :func:`_above_ground`)."""
+    (horizontal), clear of the local ground and, with ``max_height_m``, at most that high
+    above it (``ground``: see :func:`_above_ground`)."""
     near = np.flatnonzero(np.einsum("ij,ij->i", source[:, :2], source[:, :2]) < c.max_range_m ** 2)
-    return near[_above_ground(source, near, c, ground)]
+    near = near[_above_ground(source, near, c, ground)]
+    if c.max_height_m is not None:  # the ground of the whole scan: ``near`` alone has lost it
+        if ground is None or ground.cell != c.ground_cell_m:
+            ground = LocalGround(source, c.ground_cell_m)
+        near = near[~ground.above(c.max_height_m)[near]]
+    return near
 
 
 def _compact_clusters(source: np.ndarray, idx: np.ndarray, c: MotionEvidenceConfig,
