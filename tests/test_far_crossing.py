@@ -7,7 +7,6 @@ strip sees the wall behind. Built with exact geometry (faces sampled densely eno
 range-image bin has returns); the ego vehicle drives forward."""
 
 import numpy as np
-import pytest
 
 from flowslam import geometry
 from flowslam.config.ssf import MotionEvidenceConfig

@@ -306,7 +306,7 @@ def _tested(source: np.ndarray, c: MotionEvidenceConfig, ground: LocalGround | N
     above it (``ground``: see :func:`_above_ground`)."""
     near = np.flatnonzero(np.einsum("ij,ij->i", source[:, :2], source[:, :2]) < c.max_range_m ** 2)
     near = near[_above_ground(source, near, c, ground)]
-    if c.max_height_m is not None:  # the ground of the whole scan: ``near`` alone has lost it
+    if c.max_height_m is not None:  # the whole scan's ground: ``near`` holds no ground points any more
         if ground is None or ground.cell != c.ground_cell_m:
             ground = LocalGround(source, c.ground_cell_m)
         near = near[~ground.above(c.max_height_m)[near]]
