@@ -159,7 +159,7 @@ def test_mover_prior_reach_by_hand():
     landing = np.array([[5.0, 0.0, 0.5], [40.0, 0.0, 0.5]])
     prior = MoverPrior(0.15, ground_clearance_m=0.0, radius_per_m=0.01, max_radius_m=0.3)
     prior.update(landing, np.zeros_like(landing), np.ones(2, dtype=bool), T)
-    query = landing + [0.0, 0.2, 0.0]  # 0.2 m off: beyond 0.15 m at 5 m, within 0.3 m (capped 0.4) at 40 m
+    query = landing + [0.0, 0.2, 0.0]  # 0.2 m off: beyond 0.15 m at 5 m, within the 0.3 m cap at 40 m (0.01 x 40 = 0.4)
     mask, _ = prior.predict(query, T)
     np.testing.assert_array_equal(mask, [False, True])
     mask, _ = prior.predict(landing + [0.0, 0.31, 0.0], T)
@@ -178,7 +178,7 @@ def test_small_instances_by_their_bev_box():
 
 def test_mover_prior_grows_the_reach_of_small_objects_only():
     T = np.eye(4)
-    # at 40 m: a walker (instance 0, 0.5 m wide) and a car (instance 1, 4.3 m wide); one unlabelled mover
+    # at 40 m: a walker (instance 0, 0.5 m wide) and a car (instance 1, 4.5 m wide); one unlabelled mover
     landing = np.array([[40.0, 0.0, 0.5], [40.0, 0.5, 0.5], [40.0, 10.0, 0.5], [44.0, 12.0, 0.5], [40.0, -10.0, 0.5]])
     instance = np.array([0, 0, 1, 1, -1])
     prior = MoverPrior(0.15, ground_clearance_m=0.0, radius_per_m=0.01, max_radius_m=0.3, grow_max_extent_m=1.0)
