@@ -284,6 +284,17 @@ class ObjectRefinementConfig(StrictModel):
     ground maps onto itself under a turn about the sensor's axis, so point-to-point ICP
     "registers" it anywhere along the ring (real KITTI: 1-m-long arcs at 33-46 m registered
     with turns of up to 180 deg and called moving, docs/sceneflow_evaluation.md). 0: no test."""
+    min_rings: int = Field(0, ge=0)
+    """An object whose points lie on fewer of the sensor's rings than this (elevation
+    angles from scan k-1's origin more than ``ring_gap_rad`` apart,
+    :func:`~flowslam.sceneflow.refinement.clusters.ring_count`) is static, without an ICP:
+    one or two scan lines across a curved surface (a tree's canopy, a parked car's flank)
+    slide onto scan k's neighbouring lines under ICP, and the slide was called motion
+    (fresh ``static`` 784: tracked canopy arcs at 16-23 m for 14 pairs,
+    docs/sceneflow_evaluation.md, stop 66). 0: no test."""
+    ring_gap_rad: float = Field(0.00175, gt=0)
+    """Two neighbouring elevation angles further apart than this (rad; 0.1 deg) lie on
+    different rings (``min_rings``)."""
     instance_cell_m: float = Field(0.3, gt=0)
     """The moving points of an object that share a motion are split into BEV connected
     components of this cell (8-connected), each of at least ``min_points``, as separate

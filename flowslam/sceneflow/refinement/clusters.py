@@ -38,6 +38,7 @@ __all__ = [
     "lowest_per_cell",
     "neighbourhood_covariances",
     "plane_normals",
+    "ring_count",
 ]
 
 _NEIGHBOURS_3X3 = np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1)], dtype=np.int64)
@@ -143,6 +144,18 @@ def above_ground(points: np.ndarray, cell: float, clearance: float) -> np.ndarra
     if len(points) == 0:
         return np.zeros(0, dtype=bool)
     return LocalGround(points, cell).above(clearance)
+
+
+def ring_count(points: np.ndarray, gap_rad: float) -> int:
+    """Number of the sensor's rings (scan lines) that the ``points`` (N,3, their own sensor
+    frame, z up; metres) lie on: their elevation angles from the sensor's origin, sorted,
+    split where two neighbours differ by more than ``gap_rad`` (rad). One ring's points share
+    an elevation (real KITTI 64-beam: within 0.01 deg over a degree of azimuth, rings >= 0.18
+    deg apart); 0 for no points."""
+    if len(points) == 0:
+        return 0
+    elevation = np.sort(np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1])))
+    return 1 + int(np.count_nonzero(np.diff(elevation) > gap_rad))
 
 
 def dense_grid_shape(lo: np.ndarray, hi: np.ndarray, cell: float) -> tuple[int, ...] | None:

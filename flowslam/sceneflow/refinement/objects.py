@@ -70,7 +70,14 @@ from flowslam.geometry import rigid_flow, transform_points
 from flowslam.config.ssf import ObjectRefinementConfig
 from flowslam.sceneflow.refinement.compiled_icp import IcpTarget, register, register_point_to_plane
 from flowslam.sceneflow.refinement.compiled_neighbourhoods import joined_labels, within_any
-from flowslam.sceneflow.refinement.clusters import ScanSurface, bev_clusters, bev_extent, in_bounds, lowest_per_cell
+from flowslam.sceneflow.refinement.clusters import (
+    ScanSurface,
+    bev_clusters,
+    bev_extent,
+    in_bounds,
+    lowest_per_cell,
+    ring_count,
+)
 from flowslam.sceneflow.refinement.visibility import baseline_window_margins
 
 __all__ = ["ObjectRefinement", "hold_tracks", "refine_objects"]
@@ -967,8 +974,11 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
             and np.count_nonzero(sub) < c.static_accept_max_movers * len(p))
     hidden = (not fits and range_image is not None and c.hidden_test and not sub.any() and not seen.any()
               and _static_where_hidden(ego, ego_plane, p + flow, range_image, guesses, c))
-    if fits or hidden:  # static: skip the ICP
+    few_rings = not (fits or hidden) and c.min_rings > 1 and ring_count(p, c.ring_gap_rad) < c.min_rings
+    if fits or hidden or few_rings:  # static: skip the ICP
         record["hidden"] = hidden
+        if few_rings:
+            record["few_rings"] = True
         record.update(accepted=True, speed_mps=0.0,
                       result=(ego, np.zeros(len(p), dtype=bool), np.full(len(p), -1, dtype=np.int64)))
         return record
