@@ -51,13 +51,17 @@ def test_an_arc_of_a_ground_ring_is_road_not_a_mover():
     assert default.objects == [] and default.stats["road_clusters"] == 1
     assert np.allclose(default.flow[arc], geometry.rigid_flow(T_EGO, scan[arc]))
 
-    without = _refine(scan, scan, arc, min_above_ground_points=0, min_discriminating_share=0.0)  # the old behaviour
+    without = _refine(scan, scan, arc, min_above_ground_points=0, min_discriminating_share=0.0,
+                      min_rings=0)  # the old behaviour
     assert len(without.objects) == 1 and without.objects[0]["static_fitness"] == 0.0
     assert without.dynamic[arc].all()  # the arc "moves"
     # without the road test alone, the slide along the ring is still refused: every normal
     # of the flat ground is across the motion, so scan k cannot tell it from the ego motion
-    slid = _refine(scan, scan, arc, min_above_ground_points=0)
+    slid = _refine(scan, scan, arc, min_above_ground_points=0, min_rings=0)
     assert not slid.dynamic.any() and slid.objects[0]["unobservable_motions"] >= 1
+    # and the ring test alone: one ring's arc gets no ICP at all
+    one_ring = _refine(scan, scan, arc, min_above_ground_points=0, min_discriminating_share=0.0)
+    assert not one_ring.dynamic.any() and one_ring.objects[0]["few_rings"]
 
 
 def _hood() -> np.ndarray:

@@ -67,6 +67,9 @@ def test_ring_count_on_hand_built_rings():
     assert ring_count(np.concatenate([ring(2.0), ring(2.05)]), gap) == 1  # 0.05 deg apart: one ring at 0.1 deg
     assert ring_count(np.concatenate([ring(2.0), ring(2.05)]), np.radians(0.04)) == 2
     assert ring_count(np.zeros((0, 3)), gap) == 0
+    # no ring structure: elevations spread evenly over 2 deg count one ring per 0.1 deg of it
+    spread = np.concatenate([ring(e) for e in np.linspace(1.0, 3.0, 81)])  # 0.025 deg apart
+    assert ring_count(spread, gap) == 21
 
 
 @pytest.fixture(scope="module")

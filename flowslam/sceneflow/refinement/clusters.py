@@ -149,13 +149,18 @@ def above_ground(points: np.ndarray, cell: float, clearance: float) -> np.ndarra
 def ring_count(points: np.ndarray, gap_rad: float) -> int:
     """Number of the sensor's rings (scan lines) that the ``points`` (N,3, their own sensor
     frame, z up; metres) lie on: their elevation angles from the sensor's origin, sorted,
-    split where two neighbours differ by more than ``gap_rad`` (rad). One ring's points share
-    an elevation (real KITTI 64-beam: within 0.01 deg over a degree of azimuth, rings >= 0.18
-    deg apart); 0 for no points."""
+    split into bands where two neighbours differ by more than ``gap_rad`` (rad); a band
+    counts one ring, plus one per ``gap_rad`` of its width. One ring's points share an
+    elevation (real KITTI 64-beam: within 0.01 deg over a degree of azimuth, rings >= 0.18
+    deg apart), so rings count as bands; points with no ring structure (elevations spread
+    evenly, as in a non-repetitive scan pattern or points built on a grid) count one ring per
+    ``gap_rad`` of their spread. 0 for no points."""
     if len(points) == 0:
         return 0
     elevation = np.sort(np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1])))
-    return 1 + int(np.count_nonzero(np.diff(elevation) > gap_rad))
+    breaks = np.flatnonzero(np.diff(elevation) > gap_rad)
+    first, last = np.r_[0, breaks + 1], np.r_[breaks, len(elevation) - 1]
+    return int(len(first) + np.floor((elevation[last] - elevation[first]) / gap_rad).sum())
 
 
 def dense_grid_shape(lo: np.ndarray, hi: np.ndarray, cell: float) -> tuple[int, ...] | None:
