@@ -297,6 +297,12 @@ class ObjectRefinementConfig(StrictModel):
     (rings 2 deg apart) sees most vehicles on one or two rings: ``dt`` 821 (vlp16) instance
     recall 0.885 -> 0.805, Dynamic IoU 0.509 -> 0.481 (docs/sceneflow_evaluation.md, stop
     66). 0: no test."""
+    ring_body_m: float = Field(0.0, ge=0)
+    """With ``min_rings``: an object on too few rings stays static only when the points
+    clear of the ground within this distance (m) of it, its own included, lie on at least
+    ``min_rings`` rings: a slice of a larger body (a canopy's arc, a car's flank), not an
+    object thin as a whole (a vehicle on a 16-beam sensor's two rings). 0: every object on
+    too few rings."""
     ring_gap_rad: float = Field(0.00175, gt=0)
     """Two neighbouring elevation angles further apart than this (rad; 0.1 deg) lie on
     different rings (``min_rings``)."""

@@ -855,7 +855,8 @@ def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray
             ego_landings(np.concatenate(group))  # the group's ego landings in one query
         for idx in group:
             yield idx, _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
-                                      ego_landings(idx), c, range_image, guesses, None if solid is None else solid[idx])
+                                      ego_landings(idx), c, range_image, guesses, None if solid is None else solid[idx],
+                                      ring_slice=_ring_slice(source, idx, solid, c))
 
     for idx, record in refine(clusters):
         parts = _components(source, idx, c)
@@ -866,6 +867,29 @@ def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray
                 yield from split
                 continue
         yield idx, record
+
+
+def _ring_slice(source: np.ndarray, idx: np.ndarray, solid: np.ndarray | None, c: ObjectRefinementConfig) -> bool:
+    """Whether the object ``idx`` (indices into ``source``, frame k-1) lies on fewer of the
+    sensor's rings than ``min_rings`` (:func:`~flowslam.sceneflow.refinement.clusters.ring_count`;
+    never with ``min_rings`` <= 1) -- and, with ``ring_body_m`` > 0, the body around it does
+    not: the points of ``solid`` ((N,) bool, clear of the ground; None: all) within
+    ``ring_body_m`` of its points, its own included, lie on at least ``min_rings``. A slice
+    of a larger body (a canopy's arc, a car's flank) is then too thin for an ICP to tell a
+    motion from a slide onto scan k's next ring, while an object that is thin as a whole (a
+    car on a 16-beam sensor's two rings) keeps its ICP."""
+    if c.min_rings <= 1 or ring_count(source[idx], c.ring_gap_rad) >= c.min_rings:
+        return False
+    if c.ring_body_m <= 0:
+        return True
+    from scipy.spatial import cKDTree
+
+    p, r = source[idx], c.ring_body_m
+    around = np.flatnonzero(in_bounds(source, p.min(axis=0) - r, p.max(axis=0) + r))
+    if solid is not None:
+        around = around[solid[around]]
+    body = around[np.isfinite(cKDTree(p).query(source[around], distance_upper_bound=r)[0])]
+    return ring_count(source[np.union1d(body, idx)], c.ring_gap_rad) >= c.min_rings
 
 
 def _explained(record: dict, surface: ScanSurface, c: ObjectRefinementConfig) -> float:
@@ -958,12 +982,14 @@ def _target_box(surface: ScanSurface, guess: np.ndarray, ego: np.ndarray, reach:
 
 def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.ndarray, T_ego: np.ndarray,
                    interval: float, surface: ScanSurface, ego_surface: tuple[np.ndarray, np.ndarray],
-                   c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None) -> dict:
+                   c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None,
+                   ring_slice: bool = False) -> dict:
     """Register one object (points ``p``, frame k-1; their flow; its geometric movers ``sub``
     and seen-through points; ``ego_surface``: the :func:`_surface_distances` of their
     landings under ``T_ego``, whose :func:`_fit` is its static score) to scan k,
-    ``interval`` (s) after. Returns its record; an accepted one also holds ``result``:
-    (landing (M,3) of each point in frame k, moving (M,) bool)."""
+    ``interval`` (s) after; ``ring_slice``: it lies on too few rings (:func:`_ring_slice`),
+    so it stays static without an ICP. Returns its record; an accepted one also holds
+    ``result``: (landing (M,3) of each point in frame k, moving (M,) bool)."""
     ego = transform_points(T_ego, p)  # where the points land if they are static
     ego_dist, ego_plane = ego_surface
     static_score = _fit(ego_plane, c)
@@ -974,7 +1000,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
             and np.count_nonzero(sub) < c.static_accept_max_movers * len(p))
     hidden = (not fits and range_image is not None and c.hidden_test and not sub.any() and not seen.any()
               and _static_where_hidden(ego, ego_plane, p + flow, range_image, guesses, c))
-    few_rings = not (fits or hidden) and c.min_rings > 1 and ring_count(p, c.ring_gap_rad) < c.min_rings
+    few_rings = not (fits or hidden) and ring_slice
     if fits or hidden or few_rings:  # static: skip the ICP
         record["hidden"] = hidden
         if few_rings:
