@@ -284,25 +284,24 @@ class ObjectRefinementConfig(StrictModel):
     ground maps onto itself under a turn about the sensor's axis, so point-to-point ICP
     "registers" it anywhere along the ring (real KITTI: 1-m-long arcs at 33-46 m registered
     with turns of up to 180 deg and called moving, docs/sceneflow_evaluation.md). 0: no test."""
-    min_rings: int = Field(0, ge=0)
+    min_rings: int = Field(3, ge=0)
     """An object whose points lie on fewer of the sensor's rings than this (elevation
     angles from scan k-1's origin more than ``ring_gap_rad`` apart,
-    :func:`~flowslam.sceneflow.refinement.clusters.ring_count`) is static, without an ICP:
-    one or two scan lines across a curved surface (a tree's canopy, a parked car's flank)
-    slide onto scan k's neighbouring lines under ICP, and the slide was called motion
-    (``static`` 784: tracked canopy arcs at 16-23 m for 14 pairs; points called dynamic
-    0.278 -> 0.092 % with 3). Opt-in: with 3 it passed its rule on fresh hdl64 / vlp32c seeds
-    (``static`` 801-806 mean 0.084 -> 0.059 %, ``dt`` 811 / 812 and ``rush-hour`` 813 / 814
-    within their clauses, KITTI 0-15 and the AV2 pair unchanged), but a 16-beam sensor
-    (rings 2 deg apart) sees most vehicles on one or two rings: ``dt`` 821 (vlp16) instance
-    recall 0.885 -> 0.805, Dynamic IoU 0.509 -> 0.481 (docs/sceneflow_evaluation.md, stop
-    66). 0: no test."""
-    ring_body_m: float = Field(0.0, ge=0)
+    :func:`~flowslam.sceneflow.refinement.clusters.ring_count`), inside a body that lies on
+    more (``ring_body_m``), is static, without an ICP: one or two scan lines across a curved
+    surface (a tree's canopy, a parked car's flank) slide onto scan k's neighbouring lines
+    under ICP, and the slide was called motion (``static`` 784: tracked canopy arcs at 16-23
+    m for 14 pairs; points called dynamic 0.278 -> 0.09 %). Adopted with ``ring_body_m``
+    1.5 by a rule on fresh seeds of three sensors (docs/sceneflow_evaluation.md, stop 66):
+    fresh ``static`` 831-837 mean 0.202 -> 0.127 % dynamic; ``dt`` 841-843 Dynamic IoU
+    +0.000 / +0.006 / +0.012; ``rush-hour`` 844-846 EPE3D within 0.1 mm; KITTI 0-15 and the
+    AV2 pair unchanged. 0: no test."""
+    ring_body_m: float = Field(1.5, ge=0)
     """With ``min_rings``: an object on too few rings stays static only when the points
     clear of the ground within this distance (m) of it, its own included, lie on at least
     ``min_rings`` rings: a slice of a larger body (a canopy's arc, a car's flank), not an
     object thin as a whole (a vehicle on a 16-beam sensor's two rings). 0: every object on
-    too few rings."""
+    too few rings -- which cost a vlp16 ``dt`` (821) 0.08 of instance recall (stop 66)."""
     ring_gap_rad: float = Field(0.00175, gt=0)
     """Two neighbouring elevation angles further apart than this (rad; 0.1 deg) lie on
     different rings (``min_rings``)."""

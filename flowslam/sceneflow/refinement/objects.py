@@ -856,7 +856,10 @@ def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray
         for idx in group:
             yield idx, _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
                                       ego_landings(idx), c, range_image, guesses, None if solid is None else solid[idx],
-                                      ring_slice=_ring_slice(source, idx, solid, c))
+                                      ring_slice=rings(idx))
+
+    def rings(idx):  # the ring test of one cluster, asked when its ICP would run
+        return (lambda: _ring_slice(source, idx, solid, c)) if c.min_rings > 1 else None
 
     for idx, record in refine(clusters):
         parts = _components(source, idx, c)
@@ -983,12 +986,13 @@ def _target_box(surface: ScanSurface, guess: np.ndarray, ego: np.ndarray, reach:
 def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.ndarray, T_ego: np.ndarray,
                    interval: float, surface: ScanSurface, ego_surface: tuple[np.ndarray, np.ndarray],
                    c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None,
-                   ring_slice: bool = False) -> dict:
+                   ring_slice=None) -> dict:
     """Register one object (points ``p``, frame k-1; their flow; its geometric movers ``sub``
     and seen-through points; ``ego_surface``: the :func:`_surface_distances` of their
     landings under ``T_ego``, whose :func:`_fit` is its static score) to scan k,
-    ``interval`` (s) after; ``ring_slice``: it lies on too few rings (:func:`_ring_slice`),
-    so it stays static without an ICP. Returns its record; an accepted one also holds
+    ``interval`` (s) after; ``ring_slice``: None, or a function that says whether it lies
+    on too few rings (:func:`_ring_slice`; asked only of an object that would get an ICP),
+    so that it stays static without one. Returns its record; an accepted one also holds
     ``result``: (landing (M,3) of each point in frame k, moving (M,) bool)."""
     ego = transform_points(T_ego, p)  # where the points land if they are static
     ego_dist, ego_plane = ego_surface
@@ -1000,7 +1004,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
             and np.count_nonzero(sub) < c.static_accept_max_movers * len(p))
     hidden = (not fits and range_image is not None and c.hidden_test and not sub.any() and not seen.any()
               and _static_where_hidden(ego, ego_plane, p + flow, range_image, guesses, c))
-    few_rings = not (fits or hidden) and ring_slice
+    few_rings = not (fits or hidden) and ring_slice is not None and ring_slice()
     if fits or hidden or few_rings:  # static: skip the ICP
         record["hidden"] = hidden
         if few_rings:
