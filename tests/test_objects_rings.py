@@ -114,7 +114,7 @@ def test_a_static_canopy_on_two_rings_stays_static(canopy_scans):
 
     # without the test: the ego landings fall between scan k's arcs (static RMSE ~9 cm),
     # and the ICP slides the two arcs onto them, a "motion" of ~1.4 m/s
-    slid = _refine(prev, curr, flagged, min_rings=0)
+    slid = _refine(prev, curr, flagged, min_rings=0)  # (each call states its ring settings)
     assert slid.dynamic[flagged].mean() > 0.9
     assert slid.objects[0]["static_rmse_m"] > 0.05 and slid.objects[0]["rmse_m"] < 0.03
     assert 0.5 < slid.objects[0]["speed_mps"] < 3.0
@@ -147,7 +147,7 @@ def test_an_object_thin_as_a_whole_keeps_its_icp_with_the_body_test():
     curr, _ = _cast_post(STEP_M, (15.5, 0.0), 0.3, (0.7, 1.7))
     assert post.sum() >= 40 and ring_count(prev[post], np.radians(0.1)) == 2
 
-    plain = _refine(prev, curr, post, min_rings=3)
+    plain = _refine(prev, curr, post, min_rings=3, ring_body_m=0.0)
     assert plain.objects[0]["few_rings"] and "fitness" not in plain.objects[0]
 
     without = _refine(prev, curr, post, min_rings=0)

@@ -62,6 +62,7 @@ frame ``k``; metres, seconds.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -850,6 +851,9 @@ def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray
     queue one cluster holds several movers, and one rigid motion cannot register them
     all; but a car whose sparse candidate points fall into several components is better
     registered whole (its pieces slide along their own faces, and explain about as much)."""
+    def rings(idx):  # the ring test of one cluster, asked when its ICP would run
+        return (lambda: _ring_slice(source, idx, solid, c)) if c.min_rings > 1 else None
+
     def refine(group):
         if group:
             ego_landings(np.concatenate(group))  # the group's ego landings in one query
@@ -857,9 +861,6 @@ def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray
             yield idx, _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
                                       ego_landings(idx), c, range_image, guesses, None if solid is None else solid[idx],
                                       ring_slice=rings(idx))
-
-    def rings(idx):  # the ring test of one cluster, asked when its ICP would run
-        return (lambda: _ring_slice(source, idx, solid, c)) if c.min_rings > 1 else None
 
     for idx, record in refine(clusters):
         parts = _components(source, idx, c)
@@ -986,7 +987,7 @@ def _target_box(surface: ScanSurface, guess: np.ndarray, ego: np.ndarray, reach:
 def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.ndarray, T_ego: np.ndarray,
                    interval: float, surface: ScanSurface, ego_surface: tuple[np.ndarray, np.ndarray],
                    c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None,
-                   ring_slice=None) -> dict:
+                   ring_slice: Callable[[], bool] | None = None) -> dict:
     """Register one object (points ``p``, frame k-1; their flow; its geometric movers ``sub``
     and seen-through points; ``ego_surface``: the :func:`_surface_distances` of their
     landings under ``T_ego``, whose :func:`_fit` is its static score) to scan k,
