@@ -851,16 +851,13 @@ def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray
     queue one cluster holds several movers, and one rigid motion cannot register them
     all; but a car whose sparse candidate points fall into several components is better
     registered whole (its pieces slide along their own faces, and explain about as much)."""
-    def rings(idx):  # the ring test of one cluster, asked when its ICP would run
-        return (lambda: _ring_slice(source, idx, solid, c)) if c.min_rings > 1 else None
-
     def refine(group):
         if group:
             ego_landings(np.concatenate(group))  # the group's ego landings in one query
         for idx in group:
             yield idx, _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
                                       ego_landings(idx), c, range_image, guesses, None if solid is None else solid[idx],
-                                      ring_slice=rings(idx))
+                                      ring_slice=lambda idx=idx: _ring_slice(source, idx, solid, c))
 
     for idx, record in refine(clusters):
         parts = _components(source, idx, c)
@@ -886,13 +883,11 @@ def _ring_slice(source: np.ndarray, idx: np.ndarray, solid: np.ndarray | None, c
         return False
     if c.ring_body_m <= 0:
         return True
-    from scipy.spatial import cKDTree
-
     p, r = source[idx], c.ring_body_m
     around = np.flatnonzero(in_bounds(source, p.min(axis=0) - r, p.max(axis=0) + r))
     if solid is not None:
         around = around[solid[around]]
-    body = around[np.isfinite(cKDTree(p).query(source[around], distance_upper_bound=r)[0])]
+    body = around[within_any(source[around], p, r)]
     return ring_count(source[np.union1d(body, idx)], c.ring_gap_rad) >= c.min_rings
 
 
