@@ -357,6 +357,14 @@ class ObjectRefinementConfig(StrictModel):
     0.855, precision 0.904 / 0.931 -> 0.898 / 0.928; ``dt`` 593 recall 0.745 -> 0.754, 594
     and ``static`` 595 unchanged; real KITTI 0-15: 37 -> 42 instances of >= 15 points over
     15 pairs (docs/sceneflow_evaluation.md)."""
+    rest_min_speed_mps: float = Field(0.0, ge=0)
+    """> 0: dynamic points beyond ``min_range_m`` that no accepted object holds (their ego
+    landings off scan k's surface) become static, with the ego motion's flow, where their
+    group (the object whose ICP was not accepted, else a ``cluster_cell_m`` BEV cluster)
+    does not move by its own flow: the median departure of its landings from the ego
+    landings is at most this speed (m/s; horizontally with ``horizontal_departure``). In
+    static scenes that is where the network's slow false movers stay dynamic; at
+    ``dynamic_speed_mps`` it is the flow metrics' own rule for the dynamic class."""
     split_extent_m: float = Field(8.0, ge=0)
     """Clusters wider than this (BEV diagonal, m; 0: never) are also registered as their
     ``instance_cell_m`` components (at least ``min_points`` each), which replace the cluster

@@ -254,12 +254,17 @@ def _planar(T: np.ndarray, p: np.ndarray, T_ego: np.ndarray) -> np.ndarray:
 
 def _moving(landing: np.ndarray, ego: np.ndarray, interval: float, c: ObjectRefinementConfig) -> np.ndarray:
     """(M,) bool: the landings (M,3, frame k) depart from the ego landings ``ego`` by more
-    than ``dynamic_speed_mps`` over ``interval`` s: horizontally with
-    ``horizontal_departure``, else in 3D."""
+    than ``dynamic_speed_mps`` over ``interval`` s (:func:`_departures`)."""
+    return _departures(landing, ego, c) > c.dynamic_speed_mps * interval
+
+
+def _departures(landing: np.ndarray, ego: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
+    """(M,) distance (m) of the landings (M,3, frame k) from the ego landings ``ego``:
+    horizontally with ``horizontal_departure``, else in 3D."""
     departure = landing - ego
     if c.horizontal_departure:
         departure = departure[:, :2]
-    return np.linalg.norm(departure, axis=1) > c.dynamic_speed_mps * interval
+    return np.linalg.norm(departure, axis=1)
 
 
 def _lifts_centroid(T: np.ndarray, centroid: np.ndarray, T_ego: np.ndarray, c: ObjectRefinementConfig) -> bool:
@@ -655,6 +660,11 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
             on_surface |= _hidden_rest(source[rest], rigid, flow[rest], on_surface, movers[rest] | seen[rest],
                                        range_image, c)
         dynamic[rest[on_surface]] = False
+    slow_rest = 0
+    if c.rest_min_speed_mps > 0:
+        slow = _slow_rest(source, flow, np.flatnonzero(dynamic & ~settled & clear), instance, len(objects), T_ego,
+                          interval, c)
+        dynamic[slow], slow_rest = False, int(slow.size)
     static = ~dynamic & ~settled
     flow[static] = rigid_flow(T_ego, np.compress(static, source, axis=0))  # boolean indexing's rows, ~4x faster
     unregistered = 0
@@ -667,6 +677,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
         "objects_accepted": sum(o["accepted"] for o in objects),
         "objects_dynamic": sum(1 for o in objects if o.get("speed_mps", 0.0) > c.dynamic_speed_mps),
         "relabelled_static": int(on_surface.sum()),
+        "rest_static_slow": slow_rest,
         "road_clusters": road,
         "unregistered_instances": unregistered,
     }
@@ -1320,10 +1331,7 @@ def _number_unregistered(source: np.ndarray, flow: np.ndarray, dynamic: np.ndarr
     idx = np.flatnonzero(dynamic & ~accepted[instance])
     if idx.size == 0:
         return 0
-    group = instance[idx]  # the object registered, or (past the objects) a BEV cluster outside every object
-    loose = group < 0
-    if loose.any():
-        group[loose] = len(objects) + bev_clusters(source[idx[loose]], c.cluster_cell_m)
+    group = _rest_groups(source, idx, instance, len(objects), c)
     departure = np.linalg.norm(source[idx] + flow[idx] - transform_points(T_ego, source[idx]), axis=1) / interval
     first = len(objects)
     for members in _runs(group):
@@ -1338,6 +1346,33 @@ def _number_unregistered(source: np.ndarray, flow: np.ndarray, dynamic: np.ndarr
                 objects.append({"points": int(len(person)), "accepted": False, "unregistered": True,
                                 "speed_mps": float(np.median(departure[sel[person]]))})
     return len(objects) - first
+
+
+def _rest_groups(source: np.ndarray, idx: np.ndarray, instance: np.ndarray, n_objects: int,
+                 c: ObjectRefinementConfig) -> np.ndarray:
+    """(len(idx),) group of each point ``idx`` of ``source`` that no accepted object holds:
+    the object it was registered in (its ``instance``), or, outside every object (instance
+    -1), ``n_objects`` + its ``cluster_cell_m`` BEV cluster among those."""
+    group = instance[idx]
+    loose = group < 0
+    if loose.any():
+        group[loose] = n_objects + bev_clusters(source[idx[loose]], c.cluster_cell_m)
+    return group
+
+
+def _slow_rest(source: np.ndarray, flow: np.ndarray, idx: np.ndarray, instance: np.ndarray, n_objects: int,
+               T_ego: np.ndarray, interval: float, c: ObjectRefinementConfig) -> np.ndarray:
+    """``rest_min_speed_mps``: those of the dynamic points ``idx`` of ``source`` (frame k-1;
+    no accepted object holds them, their ego landings are off scan k's surface) whose group
+    (:func:`_rest_groups`) does not move by its own flow: the median :func:`_departures` of
+    its landings ``source + flow`` from the ego landings (``T_ego``) is at most
+    ``rest_min_speed_mps`` over ``interval`` s."""
+    if idx.size == 0:
+        return idx
+    group = _rest_groups(source, idx, instance, n_objects, c)
+    departure = _departures(source[idx] + flow[idx], transform_points(T_ego, source[idx]), c)
+    slow = [members for members in _runs(group) if np.median(departure[members]) <= c.rest_min_speed_mps * interval]
+    return idx[np.concatenate(slow)] if slow else idx[:0]
 
 
 def _parts(p: np.ndarray, which: np.ndarray, c: ObjectRefinementConfig,
