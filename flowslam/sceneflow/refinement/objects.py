@@ -663,7 +663,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     slow_rest = 0
     if c.rest_min_speed_mps > 0:
         slow = _slow_rest(source, flow, np.flatnonzero(dynamic & ~settled & clear), instance, len(objects), T_ego,
-                          interval, c)
+                          interval, movers | seen, c)
         dynamic[slow], slow_rest = False, int(slow.size)
     static = ~dynamic & ~settled
     flow[static] = rigid_flow(T_ego, np.compress(static, source, axis=0))  # boolean indexing's rows, ~4x faster
@@ -1361,17 +1361,19 @@ def _rest_groups(source: np.ndarray, idx: np.ndarray, instance: np.ndarray, n_ob
 
 
 def _slow_rest(source: np.ndarray, flow: np.ndarray, idx: np.ndarray, instance: np.ndarray, n_objects: int,
-               T_ego: np.ndarray, interval: float, c: ObjectRefinementConfig) -> np.ndarray:
+               T_ego: np.ndarray, interval: float, evidence: np.ndarray, c: ObjectRefinementConfig) -> np.ndarray:
     """``rest_min_speed_mps``: those of the dynamic points ``idx`` of ``source`` (frame k-1;
     no accepted object holds them, their ego landings are off scan k's surface) whose group
     (:func:`_rest_groups`) does not move by its own flow: the median :func:`_departures` of
     its landings ``source + flow`` from the ego landings (``T_ego``) is at most
-    ``rest_min_speed_mps`` over ``interval`` s."""
+    ``rest_min_speed_mps`` over ``interval`` s, and none of its points holds geometric
+    motion ``evidence`` ((N,) bool: movers or seen-through), which says it moved."""
     if idx.size == 0:
         return idx
     group = _rest_groups(source, idx, instance, n_objects, c)
     departure = _departures(source[idx] + flow[idx], transform_points(T_ego, source[idx]), c)
-    slow = [members for members in _runs(group) if np.median(departure[members]) <= c.rest_min_speed_mps * interval]
+    slow = [members for members in _runs(group)
+            if np.median(departure[members]) <= c.rest_min_speed_mps * interval and not evidence[idx[members]].any()]
     return idx[np.concatenate(slow)] if slow else idx[:0]
 
 
