@@ -35,7 +35,9 @@ when the ego motion explains that body better than the object's motion
 (``embedded_share``): its ICP slid a flagged part of a static body. Points of rejected or
 too small objects keep the network's flow and label, except that network-dynamic points
 whose ego-rigid landing spot lies on a surface of scan ``k`` become static (the static
-explanation fits the data).
+explanation fits the data), and so do the groups of the rest (an object not accepted, else a
+BEV cluster) that their own flow moves at most ``rest_min_speed_mps`` and that hold no
+geometric mover or seen-through point (:func:`_slow_rest`).
 
 Scan k is indexed once per pair (:class:`~flowslam.sceneflow.refinement.clusters.ScanSurface`):
 the ICP boxes come from its BEV buckets (same points, same x order as a bisection of the
