@@ -499,7 +499,7 @@ class ObjectsStage:
         tracked, tracked_flow = self.movers.predict(prev, T_ego)
         flow = np.where(tracked[:, None], tracked_flow, state.flow)  # last pair's movers, moved on
         dynamic = ~state.static | tracked
-        movers = seen = None
+        movers = seen = long = None
         if evidence.enabled:
             self._keep_image(state, image)
         # the scan baseline_scans before scan k-1: for the slow movers and the held tracks
@@ -508,11 +508,13 @@ class ObjectsStage:
             movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground, image,
                                             *(self._prev_scan(state) if evidence.arrivals else ()))
             movers |= self._slow_movers(state, ground, older)
+            long = self._long_slow_movers(state, ground)
             if evidence.arrivals:
                 self._surface = (state.frame.index, surface)
         above = ground.above(evidence.ground_clearance_m)  # road clusters and growth
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
-                                 state.refined.target_points, movers, seen, surface, above, image)
+                                 state.refined.target_points, movers if long is None else movers | long, seen,
+                                 surface, above, image)
         held = hold_tracks(prev, objects, tracked, tracked_flow, T_ego, state.dt, surface, older, c)
         # instances: accepted objects and the unregistered movers' (the rest: -1)
         kept = np.array([o["accepted"] or o.get("unregistered", False) for o in objects.objects] + [False])
@@ -524,29 +526,43 @@ class ObjectsStage:
     def _keep_image(self, state: PairState, image) -> None:
         """Keep scan k's range ``image`` with scan k's own pose for later pairs (their older
         scans), dropping those no later pair reaches back to."""
-        back = self.options.motion_evidence.baseline_scans
+        evidence = self.options.motion_evidence
+        back = max(evidence.baseline_scans, evidence.long_baseline_scans)
         self._images = {i: v for i, v in self._images.items() if i >= state.frame.index - back - 1}
         self._images[state.frame.index] = (image, state.T_world_measured)
 
-    def _slow_movers(self, state: PairState, ground, older) -> np.ndarray:
+    def _slow_movers(self, state: PairState, ground, older, min_range_m: float = 0.0) -> np.ndarray:
         """:func:`~flowslam.sceneflow.refinement.visibility.slow_movers` of scan k-1 against
         ``older``, the scan ``baseline_scans`` before it (:meth:`_older_view`: placed with the
-        frontend's own poses; None without one)."""
+        frontend's own poses; None without one), at ``min_range_m`` or farther."""
         from flowslam.sceneflow.refinement.visibility import slow_movers
 
         if older is None:
             return np.zeros(len(state.prev.points), dtype=bool)
         prev_image = self._images.get(state.prev.index, (None,))[0]
-        return slow_movers(state.prev.points, older[1], older[0], self.options.motion_evidence, ground, prev_image)
+        return slow_movers(state.prev.points, older[1], older[0], self.options.motion_evidence, ground, prev_image,
+                           min_range_m)
+
+    def _long_slow_movers(self, state: PairState, ground) -> np.ndarray | None:
+        """:func:`~flowslam.sceneflow.refinement.visibility.slow_movers` of scan k-1 against
+        the scan ``long_baseline_scans`` before it, as kept from when it was scan k, at
+        ``long_baseline_from_m`` or farther (horizontal range); None when the option is off
+        or that scan is not kept (a run's first scans)."""
+        evidence = self.options.motion_evidence
+        view = self._kept_view(state, evidence.long_baseline_scans) if evidence.long_baseline_scans else None
+        if view is None:
+            return None
+        return self._slow_movers(state, ground, view, evidence.long_baseline_from_m)
 
     def _older_view(self, state: PairState):
         """(range image, ``T_old_{k-1}``) of the scan ``baseline_scans`` before scan k-1
         (:meth:`_older_scan`), placed with the frontend's own poses; None without one."""
-        old = self._older_scan(state, self.options.motion_evidence.baseline_scans)
-        if old is None:
-            return None
-        old_image, T_world_old = old
-        return old_image, geometry.inv(T_world_old) @ state.history_poses[-1]
+        return _placed(state, self._older_scan(state, self.options.motion_evidence.baseline_scans))
+
+    def _kept_view(self, state: PairState, back: int):
+        """(range image, ``T_old_{k-1}``) of the scan ``back`` scans before scan k-1 as kept
+        from when it was scan k, placed with the frontend's own poses; None when not kept."""
+        return _placed(state, self._images.get(state.prev.index - back))
 
     def _prev_scan(self, state: PairState) -> tuple:
         """(range image, :class:`ScanSurface` or None) of scan k-1, for the arrivals of
@@ -579,6 +595,15 @@ class ObjectsStage:
         if image is None:  # a scan this stage did not see as scan k (a run's first scans, a retry)
             image = RangeImage(old.points, self.options.motion_evidence)
         return image, state.history_poses[-1 - back]
+
+
+def _placed(state: PairState, old: tuple | None):
+    """(range image, ``T_old_{k-1}``) of ``old`` = (range image, own ``T_world_sensor``) of an
+    older scan, placed against scan k-1 with the frontend's own poses; None for None."""
+    if old is None:
+        return None
+    old_image, T_world_old = old
+    return old_image, geometry.inv(T_world_old) @ state.history_poses[-1]
 
 
 class RigidStaticFlowStage:

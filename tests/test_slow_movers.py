@@ -274,3 +274,43 @@ def test_a_far_walker_walking_away_is_within_the_vacated_window_margins_only():
     assert not near.any()
     everywhere, _ = flagged(7.0, 0.4, 0.0)  # the window's margins there too would flag it
     assert everywhere[walker].mean() > 0.5
+
+
+def test_a_long_baseline_finds_a_walker_the_short_one_misses_once_the_run_reaches_it():
+    """A walker at 4 cm per scan, ``baseline_scans: 3`` (12 cm, within its own width) and
+    ``long_baseline_scans: 12``: until the stage has kept the image of the scan 12 before scan
+    k-1 (seen as scan k; the run's scan 0 never is) the long test gives nothing; from then on it
+    flags the walker (48 cm of free space), exactly as :func:`slow_movers` against that scan,
+    and nothing else; points nearer than ``long_baseline_from_m`` are never flagged by it."""
+    from frontends.ssf_stages import ObjectsStage
+
+    n = 17
+    ys = [1.6 - 0.04 * i for i in range(n)]
+    poses = [geometry.from_euler("z", 0.0, t=[0.2 * i, 0.0, 0.0]) for i in range(n)]
+    frames = [Frame(index=i, timestamp=0.1 * i, points=_scan(_world(y), poses[i])) for i, y in enumerate(ys)]
+
+    def run(from_m: float) -> tuple[list, list]:
+        config = SsfConfig()
+        evidence = config.objects.motion_evidence
+        evidence.baseline_scans, evidence.long_baseline_scans, evidence.long_baseline_from_m = 3, 12, from_m
+        stage = ObjectsStage(config)
+        short, long = [], []
+        for k in range(1, n):
+            state = _pair(frames, poses, k, min(k, 4))
+            short.append(_stage_slow_movers(stage, state, RangeImage(frames[k].points, evidence)))
+            long.append(stage._long_slow_movers(state, None))
+        assert len(stage._images) <= 12 + 2  # only what the longer baseline needs is kept
+        return short, long  # [k - 1]: scan k-1's flags
+
+    short, long = run(0.0)
+    assert all(flags is None for flags in long[:13])  # k = 1..13: scan k-13 not kept
+    c = SsfConfig().objects.motion_evidence
+    for k in (14, 15, 16):
+        walker = _walker_mask(_world(ys[k - 1]), ys[k - 1])
+        direct = slow_movers(frames[k - 1].points, geometry.inv(poses[k - 13]) @ poses[k - 1],
+                             RangeImage(frames[k - 13].points, c), c, source_image=RangeImage(frames[k - 1].points, c))
+        assert np.array_equal(long[k - 1], direct)
+        assert long[k - 1][walker].mean() > 0.5 and not long[k - 1][~walker].any()
+        assert short[k - 1][walker].mean() < 0.5 * long[k - 1][walker].mean()
+    _, far_only = run(8.0)  # the walker stands ~7 m from the sensor
+    assert all(flags is None for flags in far_only[:13]) and not any(flags.any() for flags in far_only[13:])

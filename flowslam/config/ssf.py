@@ -188,6 +188,22 @@ class MotionEvidenceConfig(StrictModel):
     objects stage keeps each scan's range image and own pose from when it was scan k, so
     the baseline may reach beyond the network's window; until a run has seen that many
     scans, the window's oldest scan serves. 0: off."""
+    long_baseline_scans: int = Field(14, ge=0)
+    """Slow movers a second time, against the scan this many scans before scan k-1 (as kept
+    from when it was scan k; skipped until a run has seen that many scans, so the
+    ``baseline_scans`` test alone covers the warm-up): a walker at 0.5-0.8 m/s moves
+    0.35-0.56 m in 7 scans, about its own width, and twice that in 14; a car sliding along
+    its own side leaves its older place only over a longer baseline. 0: off. 14 with
+    ``long_baseline_from_m`` 20, adopted by rule 14 (stop 68), written before fresh seeds:
+    fresh 100-scan ``dt`` 897 / 898 / 899 Dynamic IoU +0.001 / +0.026 / +0.001, all-points
+    instance recall +0.001 / +0.019 / 0; fresh ``static`` 891-896 1.05x the points dynamic
+    (0.057 -> 0.059 %); ``rush-hour`` 900-902 not worse (docs/sceneflow_evaluation.md)."""
+    long_baseline_from_m: float = Field(20.0, ge=0)
+    """... only for points of scan k-1 at least this far (horizontal range, m): nearer, the
+    short baseline's free space already finds slow walkers (its margins and bins are small
+    there), and from far back the long one sees around the edges of near static bodies
+    (tuning ``static`` 784: parked cars at 7-12 m then slid along themselves; 0.070 ->
+    0.113 % of points dynamic with no floor, 0.076 % with 15 m, 0.072 % with 20 m)."""
     baseline_own_bin: bool = False
     """Opt-in: that test looks at each point's own range-image bin, with the margins below,
     instead of the seen-through test's window and margins. Measured (stop 28): more slow

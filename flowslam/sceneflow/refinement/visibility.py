@@ -234,10 +234,11 @@ def slow_movers(
     config: MotionEvidenceConfig | None = None,
     ground: LocalGround | None = None,
     source_image: RangeImage | None = None,
+    min_range_m: float = 0.0,
 ) -> np.ndarray:
     """(N,) bool over ``source`` (scan k-1): points of BEV clusters of at least ``min_points``
-    non-ground points (within ``max_range_m``, extent at most ``max_extent_m``) where an older
-    scan sees through them. ``T_old_source`` maps ``source`` into that scan's sensor frame
+    non-ground points (within ``max_range_m`` and at least ``min_range_m``, horizontally;
+    extent at most ``max_extent_m``) where an older scan sees through them. ``T_old_source`` maps ``source`` into that scan's sensor frame
     (the frontend's own poses); ``old_image``: its :class:`RangeImage` with ``config``.
 
     Free space in the older scan where a point of scan k-1 is now means that something
@@ -257,6 +258,8 @@ def slow_movers(
     own new place behind its old body, and that body has left."""
     c = config or MotionEvidenceConfig()
     near = _tested(source, c, ground)
+    if min_range_m > 0:
+        near = near[np.einsum("ij,ij->i", source[near, :2], source[near, :2]) >= min_range_m ** 2]
     x = transform_points(T_old_source, source[near])
     if c.baseline_own_bin:
         free = old_image.sees_beyond(x, own_bin=True, margin_m=c.baseline_margin_m,
