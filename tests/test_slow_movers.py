@@ -140,6 +140,7 @@ def test_the_objects_stage_reaches_beyond_the_window_with_the_images_and_poses_i
     def flagged(baseline: int) -> np.ndarray:
         config = SsfConfig()
         config.objects.motion_evidence.baseline_scans = baseline
+        config.objects.motion_evidence.long_baseline_scans = 0  # the images of this baseline alone
         stage = ObjectsStage(config)
         for k in range(1, 11):
             image = RangeImage(frames[k].points, config.objects.motion_evidence)
