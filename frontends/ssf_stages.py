@@ -460,7 +460,8 @@ def _claimed(state: PairState) -> bool:
 
 class ObjectsStage:
     """Moving objects against scan k: candidates (network dynamic, tracked movers, geometric
-    movers, slow movers against an older scan) -> per-object ICP -> flow,
+    movers, slow movers against an older scan and, beyond ``long_baseline_from_m``, against
+    a much older one) -> per-object ICP -> flow,
     dynamic labels and instances. Needs an accepted
     static refinement (the ego motion it verifies objects against); keeps the network's
     output otherwise.

@@ -238,8 +238,9 @@ def slow_movers(
 ) -> np.ndarray:
     """(N,) bool over ``source`` (scan k-1): points of BEV clusters of at least ``min_points``
     non-ground points (within ``max_range_m`` and at least ``min_range_m``, horizontally;
-    extent at most ``max_extent_m``) where an older scan sees through them. ``T_old_source`` maps ``source`` into that scan's sensor frame
-    (the frontend's own poses); ``old_image``: its :class:`RangeImage` with ``config``.
+    extent at most ``max_extent_m``) where an older scan sees through them.
+    ``T_old_source`` maps ``source`` into that scan's sensor frame (the frontend's own
+    poses); ``old_image``: its :class:`RangeImage` with ``config``.
 
     Free space in the older scan where a point of scan k-1 is now means that something
     arrived there since: an object moving too slowly to leave scan k's surface in one step
