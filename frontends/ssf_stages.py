@@ -509,6 +509,7 @@ class ObjectsStage:
             movers, seen = geometric_movers(prev, state.frame.points, T_ego, evidence, surface, ground, image,
                                             *(self._prev_scan(state) if evidence.arrivals else ()))
             movers |= self._slow_movers(state, ground, older)
+            movers |= self._hidden_slow_movers(state, ground, older)
             long = self._long_slow_movers(state, ground)
             if evidence.arrivals:
                 self._surface = (state.frame.index, surface)
@@ -543,6 +544,21 @@ class ObjectsStage:
         prev_image = self._images.get(state.prev.index, (None,))[0]
         return slow_movers(state.prev.points, older[1], older[0], self.options.motion_evidence, ground, prev_image,
                            min_range_m)
+
+    def _hidden_slow_movers(self, state: PairState, ground, older) -> np.ndarray:
+        """The slow movers of scan k-1 against the scan ``hidden_baseline_scans`` before it
+        (:meth:`_older_scan`), kept only at the points that ``older`` did not see
+        (:func:`~flowslam.sceneflow.refinement.visibility.hidden_points`); none when the option
+        is off, without ``older``, or when that scan is ``older`` itself (a run's first scans)."""
+        from flowslam.sceneflow.refinement.visibility import hidden_points
+
+        none = np.zeros(len(state.prev.points), dtype=bool)
+        back = self.options.motion_evidence.hidden_baseline_scans
+        newer = _placed(state, self._older_scan(state, back)) if back and older is not None else None
+        if newer is None or newer[0] is older[0]:
+            return none
+        hidden = hidden_points(state.prev.points, older[1], older[0], self.options.motion_evidence, ground)
+        return self._slow_movers(state, ground, newer) & hidden if hidden.any() else none
 
     def _long_slow_movers(self, state: PairState, ground) -> np.ndarray | None:
         """:func:`~flowslam.sceneflow.refinement.visibility.slow_movers` of scan k-1 against

@@ -315,3 +315,50 @@ def test_a_long_baseline_finds_a_walker_the_short_one_misses_once_the_run_reache
         assert short[k - 1][walker].mean() < 0.5 * long[k - 1][walker].mean()
     _, far_only = run(8.0)  # the walker stands ~7 m from the sensor
     assert all(flags is None for flags in far_only[:13]) and not any(flags.any() for flags in far_only[13:])
+
+
+def test_where_the_older_scan_was_hidden_a_newer_one_tests_the_slow_mover():
+    """A standing sensor; a walker at (10, y) steps 12 cm sideways per scan; 7 scans before
+    scan k-1 a box at 5 m stood on the line of sight to where the walker is now, then left.
+    That older scan did not see the walker's place (:func:`hidden_points`), so the 7-scan test
+    finds nothing there; with ``hidden_baseline_scans: 4`` the scan 4 back, which saw the wall
+    behind that place, flags the walker and nothing else."""
+    from frontends.ssf_stages import ObjectsStage
+    from flowslam.sceneflow.refinement.visibility import hidden_points
+
+    n, prev = 11, 9
+    ys = [2.2 - 0.12 * t for t in range(n)]
+    wall = _grid((14.0, -4.0, -HEIGHT), (14.0, 4.0, 1.0))
+    ground = _grid((-4.0, -5.0, -HEIGHT), (16.0, 5.0, -HEIGHT), step=0.25)
+
+    def scan(t: int) -> np.ndarray:
+        occluder = (5.0, ys[prev] / 2 + 3.0 * (t - 2))  # on the line of sight at t = 2, then gone
+        size = (0.4, 0.8, 1.8)
+        box = _box(occluder, size)
+        rest = np.concatenate([wall, ground, _box((10.0, ys[t]))])
+        lo = (occluder[0] - size[0] / 2, occluder[1] - size[1] / 2, -HEIGHT + 0.05)
+        hi = (occluder[0] + size[0] / 2, occluder[1] + size[1] / 2, -HEIGHT + size[2])
+        return np.concatenate([rest[~_behind_box(rest, lo, hi)], box])
+
+    frames = [Frame(index=t, timestamp=0.1 * t, points=scan(t)) for t in range(n)]
+    poses = [np.eye(4)] * n
+    walker = _walker_mask(frames[prev].points, ys[prev])
+
+    def run(hidden_back: int) -> tuple[np.ndarray, np.ndarray]:
+        config = SsfConfig()
+        evidence = config.objects.motion_evidence
+        evidence.baseline_scans, evidence.hidden_baseline_scans, evidence.long_baseline_scans = 7, hidden_back, 0
+        stage = ObjectsStage(config)
+        for k in range(1, prev + 2):
+            state = _pair(frames, poses, k, min(k, 4))
+            short = _stage_slow_movers(stage, state, RangeImage(frames[k].points, evidence))
+            extra = stage._hidden_slow_movers(state, None, stage._older_view(state))
+        return short, extra
+
+    c = SsfConfig().objects.motion_evidence
+    hidden = hidden_points(frames[prev].points, np.eye(4), RangeImage(frames[prev - 7].points, c), c)
+    assert hidden[walker].mean() > 0.5
+    short, none = run(0)
+    assert short[walker].mean() < 0.2 and not none.any()
+    short, extra = run(4)
+    assert extra[walker].mean() > 0.5 and not extra[~walker].any()

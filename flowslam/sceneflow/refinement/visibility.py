@@ -41,7 +41,7 @@ from flowslam.sceneflow.refinement.clusters import (
     in_bounds,
 )
 
-__all__ = ["RangeImage", "baseline_window_margins", "spherical", "geometric_movers", "slow_movers"]
+__all__ = ["RangeImage", "baseline_window_margins", "spherical", "geometric_movers", "hidden_points", "slow_movers"]
 
 
 
@@ -278,6 +278,23 @@ def slow_movers(
             free[ask] = source_image.sees_beyond(transform_points(inv(T_old_source), where[ask]),
                                                  margin_m=_pick(margin, ask), relative_margin=_pick(relative, ask))
     return _compact_clusters(source, near[free], c)
+
+
+def hidden_points(source: np.ndarray, T_old_source: np.ndarray, old_image: RangeImage,
+                  config: MotionEvidenceConfig | None = None, ground: LocalGround | None = None) -> np.ndarray:
+    """(N,) bool over ``source`` (scan k-1): the points :func:`slow_movers` tests that the older
+    scan (``T_old_source``, ``old_image`` as there) did not see, because something stood more
+    than ``baseline_vacated_max_m`` in front of them in its window (the windowed test's
+    margins): from that scan's viewpoint, metres behind, a walker was hidden by what it
+    walked past, and the older scan says nothing about whether it moved."""
+    c = config or MotionEvidenceConfig()
+    near = _tested(source, c, ground)
+    x = transform_points(T_old_source, source[near])
+    margin, relative = baseline_window_margins(c)
+    front, where = old_image.in_front(x, margin, relative)
+    hidden = np.zeros(len(source), dtype=bool)
+    hidden[near[front & (row_norms(x - where) > c.baseline_vacated_max_m)]] = True
+    return hidden
 
 
 def baseline_window_margins(c: MotionEvidenceConfig) -> tuple[float, float]:
