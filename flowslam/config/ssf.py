@@ -194,8 +194,9 @@ class MotionEvidenceConfig(StrictModel):
     flags against the newer scan this many scans before scan k-1 count for that point. A
     trace of tuning ``dt`` 878 (stop 68): 20 of 40 frames of near walkers with no candidate
     point were hidden from the older scan's viewpoint. Prototype with 4 on the tuning seeds:
-    all-points recall +0.003 / +0.006 on ``dt`` 878 / 877, ``static`` 784 unchanged; rule 15
-    (docs/sceneflow_evaluation.md). 0: off."""
+    all-points recall +0.003 / +0.006 on ``dt`` 878 / 877, ``static`` 784 unchanged. Rule 15
+    failed on fresh seeds: ``dt`` 917-919 mean recall +0.0009 (clause +0.003), KITTI objects
+    stage 1.13x, more ``rush-hour`` ID switches (docs/sceneflow_evaluation.md). 0: off."""
     long_baseline_scans: int = Field(14, ge=0)
     """Slow movers a second time, against the scan this many scans before scan k-1 (as kept
     from when it was scan k; skipped until a run has seen that many scans, so the
