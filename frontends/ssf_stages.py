@@ -500,7 +500,7 @@ class ObjectsStage:
         tracked, tracked_flow = self.movers.predict(prev, T_ego)
         flow = np.where(tracked[:, None], tracked_flow, state.flow)  # last pair's movers, moved on
         dynamic = ~state.static | tracked
-        movers = seen = long = None
+        movers = seen = None
         if evidence.enabled:
             self._keep_image(state, image)
         # the scan baseline_scans before scan k-1: for the slow movers and the held tracks
@@ -511,12 +511,13 @@ class ObjectsStage:
             movers |= self._slow_movers(state, ground, older)
             movers |= self._hidden_slow_movers(state, ground, older)
             long = self._long_slow_movers(state, ground)
+            if long is not None:
+                movers |= long
             if evidence.arrivals:
                 self._surface = (state.frame.index, surface)
         above = ground.above(evidence.ground_clearance_m)  # road clusters and growth
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
-                                 state.refined.target_points, movers if long is None else movers | long, seen,
-                                 surface, above, image)
+                                 state.refined.target_points, movers, seen, surface, above, image)
         held = hold_tracks(prev, objects, tracked, tracked_flow, T_ego, state.dt, surface, older, c)
         # instances: accepted objects and the unregistered movers' (the rest: -1)
         kept = np.array([o["accepted"] or o.get("unregistered", False) for o in objects.objects] + [False])
