@@ -478,7 +478,8 @@ class ObjectsStage:
         self.options = config.objects
         c = self.options
         self.movers = MoverPrior(c.track_radius_m, radius_per_m=c.track_radius_per_m, max_radius_m=c.track_radius_max_m,
-                                 grow_max_extent_m=c.track_grow_max_extent_m)
+                                 grow_max_extent_m=c.track_grow_max_extent_m, max_quiet_pairs=c.track_max_quiet_pairs,
+                                 quiet_min_extent_m=c.track_quiet_min_extent_m)
         self._images: dict[int, tuple] = {}
         """(range image, own ``T_world_sensor``) of the last scans by frame index: the older
         scans' free space for :func:`~flowslam.sceneflow.refinement.visibility.slow_movers`
@@ -488,7 +489,8 @@ class ObjectsStage:
         whose arrivals ask it."""
 
     def run(self, state: PairState) -> None:
-        from flowslam.sceneflow.refinement.objects import hold_tracks, refine_objects
+        from flowslam.sceneflow.refinement.objects import SEEN_EVIDENCE_SHARE, hold_tracks, refine_objects
+        from flowslam.sceneflow.refinement.tracking import object_evidence
         from flowslam.sceneflow.refinement.visibility import geometric_movers
 
         if not state.refinement_accepted:
@@ -521,9 +523,13 @@ class ObjectsStage:
         held = hold_tracks(prev, objects, tracked, tracked_flow, T_ego, state.dt, surface, older, c)
         # instances: accepted objects and the unregistered movers' (the rest: -1)
         kept = np.array([o["accepted"] or o.get("unregistered", False) for o in objects.objects] + [False])
+        shown = None
+        if c.track_max_quiet_pairs > 0:  # the objects' own evidence this pair, besides the track
+            flags = ~state.static if movers is None else ~state.static | movers | seen
+            shown = object_evidence(flags, objects.instance, c.min_seen_through, SEEN_EVIDENCE_SHARE)
         state.flow, state.static = objects.flow, ~objects.dynamic
         state.instance = np.where(kept[objects.instance], objects.instance, -1)
-        self.movers.update(prev, objects.flow, objects.dynamic, T_ego, ground, state.instance)
+        self.movers.update(prev, objects.flow, objects.dynamic, T_ego, ground, state.instance, shown)
         state.stats.update(objects.stats, tracked_candidates=int(tracked.sum()), tracked_held=held)
 
     def _keep_image(self, state: PairState, image) -> None:

@@ -20,7 +20,7 @@ from flowslam.sceneflow.refinement.clusters import (
     lowest_per_cell,
     plane_normals,
 )
-from flowslam.sceneflow.refinement.tracking import MoverPrior, small_instances
+from flowslam.sceneflow.refinement.tracking import MoverPrior, object_evidence, small_instances
 from flowslam.sceneflow.refinement.clusters import bev_extent
 
 
@@ -329,3 +329,50 @@ def test_joined_labels_equal_the_components_of_the_pairs_within_the_gap():
     assert list(joined_labels(xy, np.array([2, 1, 0]), 1.0)) == [0, 0, 0]
     with pytest.raises(ValueError):
         joined_labels(np.array([[0.0, 0.0], [np.nan, 0.0]]), np.array([0, 1]), 0.5)
+
+
+def test_object_evidence_counts_flags_per_instance():
+    flags = np.array([1, 0, 0, 0, 1, 1, 0], dtype=bool)
+    instance = np.array([0, 0, 0, 1, 1, -1, -1])
+    # instance 0: 1 of 3 flagged; instance 1: 1 of 2; the unlabelled points stand for themselves
+    np.testing.assert_array_equal(object_evidence(flags, instance, 1, 0.4), [0, 0, 0, 1, 1, 1, 0])
+    np.testing.assert_array_equal(object_evidence(flags, instance, 2, 0.0), [0, 0, 0, 0, 0, 1, 0])
+    np.testing.assert_array_equal(object_evidence(flags, instance, 1, 0.3), [1, 1, 1, 1, 1, 1, 0])
+
+
+def test_mover_prior_stops_carrying_an_object_after_its_quiet_pairs():
+    """A walker (instance 0) moving 0.1 m per scan along x, found with evidence once: it is
+    carried for ``max_quiet_pairs`` pairs without evidence, then no more; evidence of any
+    share of it (here through a point it grew by) starts the count again."""
+    T = np.eye(4)
+    step = np.array([0.1, 0.0, 0.0])
+    body = np.array([[10.0, 0.0, 0.5], [10.0, 0.2, 0.5], [10.0, 0.4, 0.9]])
+    prior = MoverPrior(0.15, ground_clearance_m=0.0, max_quiet_pairs=2)
+    instance = np.zeros(3, dtype=np.int64)
+    flow = np.tile(step, (3, 1))
+
+    def carried(points, shown):
+        mask, _ = prior.predict(points, T)
+        prior.update(points, flow, mask, T, instance=instance, evidence=shown)
+        return mask
+
+    prior.update(body, flow, np.ones(3, dtype=bool), T, instance=instance, evidence=np.ones(3, dtype=bool))
+    quiet = np.zeros(3, dtype=bool)
+    assert carried(body + step, quiet).all()  # quiet pair 1
+    assert carried(body + 2 * step, quiet).all()  # quiet pair 2
+    assert not carried(body + 3 * step, quiet).any()  # the limit: dropped
+    # again, with one point showing motion in the second pair: the whole object starts over
+    prior.update(body, flow, np.ones(3, dtype=bool), T, instance=instance, evidence=np.ones(3, dtype=bool))
+    assert carried(body + step, quiet).all()
+    assert carried(body + 2 * step, object_evidence(np.array([False, False, True]), instance, 1, 0.0)).all()
+    assert carried(body + 3 * step, quiet).all()
+    assert carried(body + 4 * step, quiet).all()
+    assert not carried(body + 5 * step, quiet).any()
+    # without a limit, or with one for objects wider than the walker (0.4 m), it is carried on
+    for prior in (MoverPrior(0.15, ground_clearance_m=0.0),
+                  MoverPrior(0.15, ground_clearance_m=0.0, max_quiet_pairs=1, quiet_min_extent_m=0.5)):
+        prior.update(body, flow, np.ones(3, dtype=bool), T, instance=instance, evidence=quiet)
+        assert all(carried(body + (k + 1) * step, quiet).all() for k in range(5))
+    prior = MoverPrior(0.15, ground_clearance_m=0.0, max_quiet_pairs=1, quiet_min_extent_m=0.3)  # wider: limited
+    prior.update(body, flow, np.ones(3, dtype=bool), T, instance=instance, evidence=quiet)
+    assert carried(body + step, quiet).all() and not carried(body + 2 * step, quiet).any()

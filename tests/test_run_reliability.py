@@ -163,7 +163,7 @@ def test_disk_full_names_the_file_and_keeps_the_rest(seq, tmp_path, monkeypatch)
 
 def test_sigterm_keeps_the_partial_run(kitti_extract, tmp_path):
     out = tmp_path / "r"
-    env = dict(os.environ, COLUMNS="240", NO_COLOR="1")
+    env = dict(os.environ, COLUMNS="240", NO_COLOR="1", PYTHONFAULTHANDLER="1")  # a crash prints every thread's stack
     proc = subprocess.Popen(
         [sys.executable, "-m", "flowslam", "run", "--no-progress", "-f", "ssf", "-o", out, kitti_extract],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
@@ -174,6 +174,7 @@ def test_sigterm_keeps_the_partial_run(kitti_extract, tmp_path):
     time.sleep(2.0)
     proc.send_signal(signal.SIGTERM)
     stdout, stderr = proc.communicate(timeout=120)
+    print(stderr)  # whole, in the report of a failure (an assertion message is cut short)
     assert proc.returncode == 128 + signal.SIGTERM, (proc.returncode, stderr)
     assert "Traceback" not in stderr and "flowslam: stopped by SIGTERM" in stderr
     latest = out / "latest"

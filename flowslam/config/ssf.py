@@ -738,6 +738,22 @@ class ObjectRefinementConfig(StrictModel):
     (m, the diagonal of the instance's BEV box) get the grown reach; larger objects and
     dynamic points without an instance keep ``track_radius_m`` (0: every landing spot grows).
     Most of KITTI's extra tracked candidates come from objects wider than 6 m (stop 65)."""
+    track_max_quiet_pairs: int = Field(0, ge=0)
+    """A tracked mover is carried on for at most this many pairs in a row in which its object
+    shows no motion of its own: fewer than ``min_seen_through`` (and 2 % of
+    its points) flagged by the network, the geometric or slow-mover tests, or seen through
+    (:class:`~flowslam.sceneflow.refinement.tracking.MoverPrior`; 0: no limit). Opt-in: stop
+    69's rule 16 (1 pair, objects wider than 3 m) failed on fresh seeds. Tuning ``static`` 915
+    (vlp16, a bush and a parked car carried on by one track for 9 pairs) fell from 1.57 to
+    0.93 % of points dynamic, but fresh ``static`` 931-936 moved 0.999x (clause: 0.97x);
+    fresh ``dt`` 939 (vlp16) gained 0.012 Dynamic IoU and 0.019 precision, the others were
+    unchanged within 0.001, fresh ``rush-hour`` recall -0.003 at most
+    (docs/sceneflow_evaluation.md). Without the width limit, tuning ``dt`` 878 lost 0.028 of
+    recall at 2 pairs: real walkers go several pairs without evidence."""
+    track_quiet_min_extent_m: float = Field(0.0, ge=0)
+    """``track_max_quiet_pairs`` counts only for objects wider than this (m, the diagonal of
+    the instance's BEV box; 0: all): a walker moving along the ray leaves no free space to
+    see, while a wide body that moves uncovers some."""
     hypotheses_m: list[float] = Field(default_factory=lambda: [-2.0, -1.0, -0.5, 0.5, 1.0, 2.0])
     """Objects with seen-through points also start ICP from the ego landing shifted by
     these distances along their principal (BEV) axis."""
