@@ -27,26 +27,32 @@ def drive(
     """Feed ``frames`` (dataset indices, default all) of ``dataset`` to ``slam`` in order;
     ``on_frame(k, seconds)`` after each (progress bars; seconds include the read).
     Exceptions, including ``KeyboardInterrupt``, end the loop and are stored in the
-    result instead of propagating. A frontend with an ``upcoming(frame)`` method is told
-    the next scan before it processes the current one (read one step ahead: its work on
-    the next scan may start early, e.g. ``ssf``'s network)."""
+    result instead of propagating, also those raised between two scans (in ``on_frame``, or a
+    signal handled at the loop's own step); the scan then said to have stopped the run is
+    the first one not processed (the last one when all were). A frontend with an
+    ``upcoming(frame)`` method is told the next scan before it processes the current one
+    (read one step ahead: its work on the next scan may start early, e.g. ``ssf``'s network)."""
     frames = range(len(dataset)) if frames is None else frames
     upcoming = getattr(slam.frontend, "upcoming", None)
     ahead: Frame | None = None  # frames[k], read one step early for the frontend's ``upcoming``
-    for k, index in enumerate(frames):
-        start = time.perf_counter()
-        try:
-            frame, ahead = (ahead if ahead is not None else dataset[index]), None
-            if upcoming is not None and k + 1 < len(frames):
-                ahead = _read_ahead(dataset, frames[k + 1])
-                if ahead is not None:
-                    upcoming(ahead)
-            slam.process(frame, started=start)
-        except (Exception, KeyboardInterrupt) as error:  # keep what is done, report after writing
-            slam.stopped(stop_behind(error), index)  # a signal that surfaced as another error is the signal
-            break
-        if on_frame is not None:
-            on_frame(k, time.perf_counter() - start)
+    try:
+        for k, index in enumerate(frames):
+            start = time.perf_counter()
+            try:
+                frame, ahead = (ahead if ahead is not None else dataset[index]), None
+                if upcoming is not None and k + 1 < len(frames):
+                    ahead = _read_ahead(dataset, frames[k + 1])
+                    if ahead is not None:
+                        upcoming(ahead)
+                slam.process(frame, started=start)
+            except (Exception, KeyboardInterrupt) as error:  # keep what is done, report after writing
+                slam.stopped(stop_behind(error), index)  # a signal that surfaced as another error is the signal
+                break
+            if on_frame is not None:
+                on_frame(k, time.perf_counter() - start)
+    except (Exception, KeyboardInterrupt) as error:  # between two scans: the progress callback, the loop itself
+        done = len(slam.result().indices)
+        slam.stopped(stop_behind(error), frames[min(done, len(frames) - 1)])  # the first scan not processed
     return slam.result()
 
 

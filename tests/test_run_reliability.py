@@ -312,3 +312,19 @@ def test_weights_are_taken_by_the_frontends_with_a_network(seq, tmp_path):
     cfg = load_config(frontend="gt")
     with pytest.raises(InputError, match="'gt' does not use it .it reads flow_odometry"):
         check_requested_options(cfg, make_frontend("gt", cfg), make_backend("odometry", cfg), ["ssf.network.weights"])
+
+
+def test_ctrl_c_in_the_progress_callback_keeps_the_scans_processed(seq, tmp_path):
+    """Ctrl-C handled between two scans (here in ``on_frame``, the progress bar's callback)
+    stops the run like one inside a scan: the folder holds the scans done, and the scan
+    said to have stopped it is the first one not processed."""
+    def ctrl_c_after_the_second(k, seconds):
+        if k == 1:
+            raise KeyboardInterrupt
+
+    cfg = load_config(output_dir=str(tmp_path / "r"))
+    outcome = run_sequence(seq, cfg, on_frame=ctrl_c_after_the_second)
+    assert isinstance(outcome.result.error, KeyboardInterrupt) and outcome.result.failed_index == 2
+    info = json.loads((tmp_path / "r" / "latest" / "run.json").read_text())
+    assert info["complete"] is False and info["frames_processed"] == 2 and info["failed_index"] == 2
+    assert len(read_trajectory(tmp_path / "r" / "latest" / "trajectory_tum.txt")) == 2
