@@ -9,7 +9,13 @@ that keeps the work done on Ctrl-C (``run_pipeline`` stores it in
 writing of a run folder) SIGINT and SIGTERM are recorded and raised only when the
 block ends, so a run folder is never half written because of a signal.
 
-Both are no-ops outside the main thread (Python delivers signals to it only).
+Inside :func:`terminate_as_interrupt`, the scan loop (:func:`flowslam.pipeline.drive`)
+takes SIGTERM at its own safe points instead (:func:`sigterm_at_safe_points`): between
+two scans, so an exception never surfaces inside a native library's callback or a
+finaliser, where Python cannot pass it on (it is printed and lost there, and the
+library's state may be left half changed).
+
+All are no-ops outside the main thread (Python delivers signals to it only).
 ``flowslam run`` turns SIGTERM into ``Terminated`` for the whole command; library
 callers keep their own handlers (``run_sequence`` only defers signals while writing).
 """
@@ -19,9 +25,10 @@ from __future__ import annotations
 import signal
 import threading
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Callable, Iterator
 
-__all__ = ["Terminated", "terminate_as_interrupt", "deferred_signals", "describe_stop", "exit_code", "stop_behind"]
+__all__ = ["Terminated", "terminate_as_interrupt", "sigterm_at_safe_points", "deferred_signals", "describe_stop",
+           "exit_code", "stop_behind"]
 
 
 class Terminated(KeyboardInterrupt):
@@ -51,6 +58,32 @@ def terminate_as_interrupt() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+@contextmanager
+def sigterm_at_safe_points() -> Iterator[Callable[[], None]]:
+    """Yields ``check()``. Where SIGTERM would raise :class:`Terminated` (inside
+    :func:`terminate_as_interrupt`), inside this block it is only recorded, and ``check()``
+    raises it: call it where stopping is safe (between two scans). Elsewhere (other
+    handlers, other threads) ``check()`` does nothing and the handlers stay as they are.
+    On leaving, the handler in place before is restored; a SIGTERM recorded but not yet
+    raised is then sent again, to that handler."""
+    if not _in_main_thread() or signal.getsignal(signal.SIGTERM) is not _raise_terminated:
+        yield lambda: None
+        return
+    pending: list[int] = []
+
+    def check() -> None:
+        if pending:
+            raise Terminated(pending.pop())
+
+    previous = signal.signal(signal.SIGTERM, lambda signum, _frame: pending.append(signum))
+    try:
+        yield check
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    if pending:
+        signal.raise_signal(pending[0])
 
 
 @contextmanager

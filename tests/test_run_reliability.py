@@ -328,3 +328,51 @@ def test_ctrl_c_in_the_progress_callback_keeps_the_scans_processed(seq, tmp_path
     info = json.loads((tmp_path / "r" / "latest" / "run.json").read_text())
     assert info["complete"] is False and info["frames_processed"] == 2 and info["failed_index"] == 2
     assert len(read_trajectory(tmp_path / "r" / "latest" / "trajectory_tum.txt")) == 2
+
+
+def test_sigterm_during_a_scan_stops_the_run_once_that_scan_is_done(seq, tmp_path, monkeypatch):
+    """Under ``terminate_as_interrupt`` (``flowslam run``), SIGTERM arriving inside the
+    frontend does not raise there: the scan in progress finishes, and the run stops before
+    the next one, which is the scan said to have stopped it."""
+    from flowslam.frontends.kiss_icp import KissIcpFrontend
+    from flowslam.signals import Terminated, terminate_as_interrupt
+
+    real_process, calls = KissIcpFrontend.process, []
+
+    def sigterm_inside_the_third(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)  # the handler has run by now, in the middle of this scan
+        return real_process(self, *args, **kwargs)
+
+    monkeypatch.setattr(KissIcpFrontend, "process", sigterm_inside_the_third)
+    with terminate_as_interrupt():
+        outcome = run_sequence(seq, load_config(frontend="kiss-icp", output_dir=str(tmp_path / "r")))
+    assert isinstance(outcome.result.error, Terminated) and outcome.result.failed_index == 3
+    info = json.loads((tmp_path / "r" / "latest" / "run.json").read_text())
+    assert info["error"] == "stopped by SIGTERM" and info["frames_processed"] == 3 and len(calls) == 3
+
+
+def test_sigterm_at_safe_points_only_under_terminate_as_interrupt():
+    from flowslam.signals import Terminated, sigterm_at_safe_points, terminate_as_interrupt
+
+    before = signal.getsignal(signal.SIGTERM)
+    with sigterm_at_safe_points() as check:  # another handler in place: nothing changes
+        assert signal.getsignal(signal.SIGTERM) == before
+        check()
+    with terminate_as_interrupt():
+        with sigterm_at_safe_points() as check:
+            check()  # nothing recorded
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+            reached = True  # not raised where it landed ...
+            with pytest.raises(Terminated):
+                check()  # ... but here
+            check()  # once
+        # recorded and not raised before the block ends: sent again, to terminate_as_interrupt's handler
+        with pytest.raises(Terminated):
+            with sigterm_at_safe_points():
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.05)
+    assert reached and signal.getsignal(signal.SIGTERM) == before
