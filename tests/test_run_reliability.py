@@ -370,6 +370,11 @@ def test_sigterm_at_safe_points_only_under_terminate_as_interrupt():
             with pytest.raises(Terminated):
                 check()  # ... but here
             check()  # once
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+            with pytest.raises(Terminated):  # a second one before check(): at once
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.05)
         # recorded and not raised before the block ends: sent again, to terminate_as_interrupt's handler
         with pytest.raises(Terminated):
             with sigterm_at_safe_points():
