@@ -66,8 +66,9 @@ def sigterm_at_safe_points() -> Iterator[Callable[[], None]]:
     :func:`terminate_as_interrupt`), inside this block it is only recorded, and ``check()``
     raises it: call it where stopping is safe (between two scans). Elsewhere (other
     handlers, other threads) ``check()`` does nothing and the handlers stay as they are.
-    A second SIGTERM before ``check()`` took the first raises at once. On leaving, the handler in place before is restored; a SIGTERM recorded but not yet
-    raised is then sent again, to that handler."""
+    A second SIGTERM before ``check()`` took the first raises at once. On leaving, the
+    handler in place before is restored; a SIGTERM recorded but not yet raised is then
+    sent again, to that handler."""
     if not _in_main_thread() or signal.getsignal(signal.SIGTERM) is not _raise_terminated:
         yield lambda: None
         return
