@@ -258,10 +258,7 @@ def slow_movers(
     the point's ray ``source`` sees through: a walker walking away from the sensor hid its
     own new place behind its old body, and that body has left."""
     c = config or MotionEvidenceConfig()
-    near = _tested(source, c, ground)
-    if min_range_m > 0:
-        near = near[np.einsum("ij,ij->i", source[near, :2], source[near, :2]) >= min_range_m ** 2]
-    x = transform_points(T_old_source, source[near])
+    near, x = _tested_in_older(source, T_old_source, c, ground, min_range_m)
     if c.baseline_own_bin:
         free = old_image.sees_beyond(x, own_bin=True, margin_m=c.baseline_margin_m,
                                      relative_margin=c.baseline_relative_margin)
@@ -288,8 +285,7 @@ def hidden_points(source: np.ndarray, T_old_source: np.ndarray, old_image: Range
     margins): from that scan's viewpoint, metres behind, a walker was hidden by what it
     walked past, and the older scan says nothing about whether it moved."""
     c = config or MotionEvidenceConfig()
-    near = _tested(source, c, ground)
-    x = transform_points(T_old_source, source[near])
+    near, x = _tested_in_older(source, T_old_source, c, ground)
     margin, relative = baseline_window_margins(c)
     front, where = old_image.in_front(x, margin, relative)
     hidden = np.zeros(len(source), dtype=bool)
@@ -332,6 +328,17 @@ def _tested(source: np.ndarray, c: MotionEvidenceConfig, ground: LocalGround | N
             ground = LocalGround(source, c.ground_cell_m)
         near = near[~ground.above(c.max_height_m)[near]]
     return near
+
+
+def _tested_in_older(source: np.ndarray, T_old_source: np.ndarray, c: MotionEvidenceConfig,
+                     ground: LocalGround | None, min_range_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The points of ``source`` an older scan is asked about (:func:`slow_movers`,
+    :func:`hidden_points`): their indices (:func:`_tested`, at ``min_range_m`` or farther,
+    horizontally) and their positions in that scan's sensor frame (``T_old_source``)."""
+    near = _tested(source, c, ground)
+    if min_range_m > 0:
+        near = near[np.einsum("ij,ij->i", source[near, :2], source[near, :2]) >= min_range_m ** 2]
+    return near, transform_points(T_old_source, source[near])
 
 
 def _compact_clusters(source: np.ndarray, idx: np.ndarray, c: MotionEvidenceConfig,
