@@ -98,23 +98,22 @@ class MoverPrior:
         has evidence now or was not carried here). An instance takes the least quietness
         among its carried points: points it grew by were not carried but have no evidence."""
         n = len(source)
+        if evidence is None:
+            return np.zeros(n, dtype=np.int64)
         carried = self._carried[1] if self._carried is not None and self._carried[0] == n else np.full(n, -1)
         quiet = np.maximum(carried, 0)
         if instance is not None:
             has = np.flatnonzero((instance >= 0) & (carried >= 0))
-            if has.size:
-                least = np.full(int(instance.max()) + 1, np.iinfo(np.int64).max)
+            if has.size:  # instances without a carried point keep 0
+                none = np.iinfo(np.int64).max
+                least = np.full(int(instance.max()) + 1, none)
                 np.minimum.at(least, instance[has], quiet[has])
+                least[least == none] = 0
                 mine = np.flatnonzero(instance >= 0)
-                inherited = least[instance[mine]]
-                quiet[mine] = np.where(inherited == np.iinfo(np.int64).max, quiet[mine], inherited)
-        if instance is not None and self.quiet_min_extent_m > 0:
-            quiet[small_instances(np.asarray(source), instance, self.quiet_min_extent_m)] = 0
-        if evidence is not None:
-            quiet[np.asarray(evidence, dtype=bool)] = 0
-        else:
-            quiet[:] = 0
-        quiet[~np.asarray(dynamic, dtype=bool)] = 0
+                quiet[mine] = least[instance[mine]]
+            if self.quiet_min_extent_m > 0:
+                quiet[small_instances(source, instance, self.quiet_min_extent_m)] = 0
+        quiet[np.asarray(evidence, dtype=bool) | ~np.asarray(dynamic, dtype=bool)] = 0
         return quiet
 
     def _above_ground(self, source: np.ndarray, idx: np.ndarray, ground: LocalGround | None) -> np.ndarray:
