@@ -555,6 +555,8 @@ def flow_eval_command(
                 table.add_row(f"{label}: {key}", "-" if value is None else f"{value:.4f}", "")
             table.add_row(f"{label}: GT / predicted / found", f"{objects['gt_objects']} / "
                           f"{objects['predicted_objects']} / {objects['found']}", "")
+            table.add_row(f"{label}: missed unflagged / split / merged", f"{objects['missed_unflagged']} / "
+                          f"{objects['missed_split']} / {objects['missed_merged']}", "")
         Console().print(table)
         if json_out is not None:
             from flowslam.results import write_json

@@ -4,7 +4,7 @@ then through ``flowslam flow-eval``'s sink on a simulated sequence."""
 import numpy as np
 import pytest
 
-from flowslam.sceneflow.object_metrics import ObjectScores, match_instances
+from flowslam.sceneflow.object_metrics import ObjectScores, match_instances, miss_reasons
 
 
 def _ids(*runs: tuple[int, int]) -> np.ndarray:
@@ -77,6 +77,25 @@ def test_object_scores_recall_precision_velocity_and_id_switches():
     assert r["id_switches_per_100_pairs"] == pytest.approx(100 / 3)
 
 
+def test_each_missed_object_gets_one_reason():
+    # GT 1 (100 points): 40 called dynamic (instance 5) -> under half flagged: unflagged
+    # GT 2 (100): 90 flagged, in pieces of 45 / 45 (instances 6, 7) -> no piece covers half: split
+    # GT 3 (100): all in instance 8, which also holds 150 background points -> IoU 0.4: merged
+    # GT 4 (100): all in instance 9 alone -> found, no reason
+    gt = _ids((1, 100), (2, 100), (3, 100), (4, 100), (-1, 150))
+    pred = _ids((5, 40), (-1, 60), (6, 45), (7, 45), (-1, 10), (8, 100), (9, 100), (8, 150))
+    found, gt_objects, _ = match_instances(pred, gt)
+    assert found == {4: 9}
+    assert miss_reasons(pred, gt, found, gt_objects) == {1: "unflagged", 2: "split", 3: "merged"}
+    scores = ObjectScores()
+    scores.add(pred, gt, {}, {}, {})
+    r = scores.result()
+    assert (r["missed_unflagged"], r["missed_split"], r["missed_merged"]) == (1, 1, 1)
+    assert r["gt_objects"] - r["found"] == 3  # the reasons account for every miss
+    # none of its points flagged at all is unflagged too, even with no cover asked
+    assert miss_reasons(np.full(100, -1), _ids((1, 100)), {}, [1], min_cover=0.0) == {1: "unflagged"}
+
+
 def test_nothing_to_count_gives_none():
     r = ObjectScores().result()
     assert r["recall"] is None and r["precision"] is None and r["median_speed_error_mps"] is None
@@ -94,6 +113,7 @@ def test_flow_eval_reports_object_metrics_for_ssf_on_simulation(tmp_path):
     ssf = evaluate_flow(tmp_path / "dt", PipelineConfig(frontend="ssf", backend="odometry"))["objects"]
     assert ssf["gt_objects"] == gt["gt_objects"] > 0
     assert 0 < ssf["found"] <= ssf["gt_objects"]
+    assert ssf["missed_unflagged"] + ssf["missed_split"] + ssf["missed_merged"] == ssf["gt_objects"] - ssf["found"]
     assert ssf["median_speed_error_mps"] is not None and ssf["median_speed_error_mps"] < 1.0
 
 

@@ -19,14 +19,22 @@ Definitions (per scan pair; points of scan k-1):
   method's with its own flow and ego motion, GT's with GT flow and poses);
 - an **ID switch**: a GT object found in a pair by a predicted object whose track id
   differs from the track id that found it the last time it was found; reported per 100
-  scan pairs.
+  scan pairs;
+- **why a GT object is missed** (:func:`miss_reasons`), one reason each: *unflagged*
+  (fewer than ``min_cover`` of its points are called dynamic), *split* (enough are, but
+  no one instance covers ``min_cover`` of them: it is in pieces), *merged* (one instance
+  covers it but its IoU is under ``min_iou``: the instance also holds other points, e.g.
+  a neighbour). Reported as counts beside recall.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["ObjectScores", "match_instances"]
+__all__ = ["ObjectScores", "match_instances", "miss_reasons", "MISS_REASONS"]
+
+MISS_REASONS = ("unflagged", "split", "merged")
+"""The reasons :func:`miss_reasons` gives, in the order of its test."""
 
 
 def match_instances(pred: np.ndarray, gt: np.ndarray, min_points: int = 50, min_cover: float = 0.5,
@@ -56,6 +64,26 @@ def match_instances(pred: np.ndarray, gt: np.ndarray, min_points: int = 50, min_
     return found, gt_objects, pred_objects
 
 
+def miss_reasons(pred: np.ndarray, gt: np.ndarray, found: dict[int, int], gt_objects: list[int],
+                 min_cover: float = 0.5) -> dict[int, str]:
+    """{GT id: reason} for each GT object of ``gt_objects`` not in ``found`` (module doc:
+    ``unflagged``, ``split`` or ``merged``); ``pred``, ``gt`` as for :func:`match_instances`."""
+    pred, gt = np.asarray(pred, np.int64), np.asarray(gt, np.int64)
+    out: dict[int, str] = {}
+    for g in gt_objects:
+        if g in found:
+            continue
+        mine = pred[gt == g]
+        flagged = mine[mine >= 0]
+        if flagged.size == 0 or flagged.size < min_cover * mine.size:
+            out[g] = "unflagged"
+        elif np.bincount(flagged - flagged.min()).max() < min_cover * mine.size:
+            out[g] = "split"
+        else:
+            out[g] = "merged"
+    return out
+
+
 class ObjectScores:
     """Accumulates the module's metrics over the pairs of a run."""
 
@@ -65,6 +93,7 @@ class ObjectScores:
         self.speed_errors: list[float] = []
         self.velocity_errors: list[float] = []
         self._last_track: dict[int, int] = {}
+        self.missed = dict.fromkeys(MISS_REASONS, 0)
 
     def add(self, pred: np.ndarray, gt: np.ndarray, velocity: dict[int, np.ndarray],
             gt_velocity: dict[int, np.ndarray], track: dict[int, int]) -> None:
@@ -76,6 +105,8 @@ class ObjectScores:
         self.found += len(found)
         self.pred_objects += len(pred_objects)
         self.true_pred += len(set(found.values()) & set(pred_objects))
+        for reason in miss_reasons(pred, gt, found, gt_objects, self.rule["min_cover"]).values():
+            self.missed[reason] += 1
         for g, p in found.items():
             if p in velocity and g in gt_velocity:
                 v, v_gt = np.asarray(velocity[p]), np.asarray(gt_velocity[g])
@@ -99,5 +130,6 @@ class ObjectScores:
             "recall": ratio(self.found, self.gt_objects), "precision": ratio(self.true_pred, self.pred_objects),
             "median_speed_error_mps": median(self.speed_errors),
             "median_velocity_error_mps": median(self.velocity_errors),
-            "id_switches_per_100_pairs": ratio(100 * self.switches, self.pairs), **self.rule,
+            "id_switches_per_100_pairs": ratio(100 * self.switches, self.pairs),
+            **{f"missed_{reason}": n for reason, n in self.missed.items()}, **self.rule,
         }
