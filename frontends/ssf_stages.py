@@ -519,7 +519,7 @@ class ObjectsStage:
                 self._surface = (state.frame.index, surface)
         above = ground.above(evidence.ground_clearance_m)  # road clusters and growth
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
-                                 state.refined.target_points, movers, seen, surface, above, image)
+                                 state.refined.target_points, movers, seen, surface, above, image, tracked)
         held = hold_tracks(prev, objects, tracked, tracked_flow, T_ego, state.dt, surface, older, c)
         # instances: accepted objects and the unregistered movers' (the rest: -1)
         kept = np.array([o["accepted"] or o.get("unregistered", False) for o in objects.objects] + [False])

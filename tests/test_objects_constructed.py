@@ -800,3 +800,44 @@ def test_two_cars_driving_apart_in_one_cluster_each_get_their_own_motion():
     assert not result.dynamic[(labels == 0) & ~between].any()  # the unflagged scene stays static
     _, right = run(mover_part_cell_m=0.0, leftover_motion=False, coherent_parts=False)
     assert min(right) < 0.8
+
+
+def _walker_by_wall_pair():
+    """Scan k-1 and scan k (sensor frames; labels of scan k-1: 0 road, 1 wall, 2 walker) of a
+    road, a 30 m wall and a 0.5 x 0.5 x 1.7 m walker 0.1 m from the wall, walking along it at
+    2 m/s (0.2 m per scan) 10 m ahead; the sensor drives 0.8 m per scan along x."""
+    def scene(scan: int):
+        road = _grid(np.array([30.0, 0, 0]), np.array([0, 12.0, 0]), np.array([-5.0, -6.0, -0.01]))
+        wall = _grid(np.array([30.0, 0, 0]), np.array([0, 0, 3.0]), np.array([-5.0, 6.0, 0.0]))
+        walker = _box(10.0 + 0.2 * scan, 5.4, (0.5, 0.5, 1.7))
+        parts = [road, wall, walker]
+        return np.concatenate(parts), np.concatenate([np.full(len(p), k) for p, k in zip(parts, [0, 1, 2])])
+
+    (world_prev, labels), (world_curr, _) = scene(0), scene(1)
+    T_world_curr = geometry.from_euler("z", 0.0, t=[0.8, 0.0, 0.0])
+    return world_prev, geometry.transform_points(geometry.inv(T_world_curr), world_curr), labels, geometry.inv(T_world_curr)
+
+
+def test_a_tracked_walker_inside_a_static_cluster_is_registered_on_its_own():
+    """The "network" flags the walker and the whole wall beside it (as it flags the scene
+    around a crowd): one cluster of ~10,000 points, whose one ICP is the ego motion, so the
+    walker stays static. The mover track carried the walker from the last pair (``tracked``):
+    with ``tracked_parts_min_points`` its points are registered on their own, move at 2 m/s
+    and leave the cluster as their own instance; the wall and the road stay static."""
+    prev, curr, labels, T_ego = _walker_by_wall_pair()
+    walker = labels == 2
+    flagged = labels > 0
+    flow = geometry.rigid_flow(T_ego, prev)
+    flow[walker] += [0.15, 0.0, 0.0]  # the track's carried motion: 5 cm short
+    common = (prev, flow, flagged, curr, T_ego, DT)
+    plain = refine_objects(*common, ObjectRefinementConfig(), tracked=walker)
+    assert plain.dynamic[walker].mean() < 0.1  # the cluster's ICP: the wall's ego motion
+    parts = refine_objects(*common, ObjectRefinementConfig(tracked_parts_min_points=15), tracked=walker)
+    assert parts.dynamic[walker].mean() > 0.9
+    assert not parts.dynamic[labels < 2].any()
+    ids = np.unique(parts.instance[walker & parts.dynamic])
+    assert len(ids) == 1 and not np.isin(parts.instance[labels == 1], ids).any()
+    assert parts.objects[int(ids[0])]["speed_mps"] == pytest.approx(2.0, abs=0.2)
+    # a cluster that the tracked points make up for the most part is left as it was
+    most = refine_objects(*common, ObjectRefinementConfig(tracked_parts_min_points=15), tracked=flagged)
+    assert most.dynamic[walker].mean() < 0.1

@@ -409,6 +409,18 @@ class ObjectRefinementConfig(StrictModel):
     """A cluster wider than ``split_extent_m`` is replaced by its components when their
     registrations put at least this share of its points more on scan k's surface than
     its own does."""
+    tracked_parts_min_points: int = Field(0, ge=0)
+    """> 0: where a cluster ends with no moving point but holds points the mover track
+    carried from the last pair (at most ``tracked_parts_max_share`` of it), each
+    ``instance_cell_m`` component of those points with at least this many is registered on
+    its own, and the ones that then move leave the cluster as objects of their own (the rest
+    keeps the cluster's result). In a crowd the network's candidates join walkers and the
+    static scene around them into one cluster of thousands of points, whose single ICP is
+    the ego motion. 0: off (stop 70)."""
+    tracked_parts_max_share: float = Field(0.5, gt=0, le=1)
+    """The largest share of a cluster its tracked points may hold for
+    ``tracked_parts_min_points`` to look at them on their own (a cluster that is mostly
+    tracked was registered as the tracked object already)."""
     correspondence_m: list[float] = Field(default_factory=lambda: [1.0, 0.3, 0.1], min_length=1)
     """Per-object ICP stages, coarse to fine: largest correspondence distance per stage (at
     least one)."""

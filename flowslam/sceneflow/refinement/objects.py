@@ -478,6 +478,7 @@ def refine_objects(
     surface: ScanSurface | None = None,
     above_ground: np.ndarray | None = None,
     range_image=None,
+    tracked: np.ndarray | None = None,
 ) -> ObjectRefinement:
     """Refine the flow of the candidate moving points of ``source`` (scan k-1) against
     ``target`` (scan k) given the ego motion ``T_ego`` = ``T_{k,k-1}`` (module doc), in at
@@ -503,7 +504,8 @@ def refine_objects(
     moving objects may grow (``grow_max_extent_m``). ``range_image``: a
     :class:`~flowslam.sceneflow.refinement.visibility.RangeImage` of ``target``; with it, an
     object without geometric movers or seen-through points stays static when scan k hides
-    where the ego motion puts it (:func:`_static_where_hidden`).
+    where the ego motion puts it (:func:`_static_where_hidden`). ``tracked`` (N,) bool: the
+    candidates the mover track carried from the last pair (for ``tracked_parts_min_points``).
     """
     c = config or ObjectRefinementConfig()
     if target_points is None:
@@ -513,7 +515,7 @@ def refine_objects(
     movers = np.zeros(len(source), dtype=bool) if movers is None else np.asarray(movers, dtype=bool)
     seen = np.zeros(len(source), dtype=bool) if seen_through is None else np.asarray(seen_through, dtype=bool)
     interval = scan_interval(dt)
-    scene = (source, T_ego, interval, target_points, seen, surface, above_ground, range_image, c)
+    scene = (source, T_ego, interval, target_points, seen, surface, above_ground, range_image, c, tracked)
     result = _refine_round(np.array(flow, dtype=np.float64), np.array(dynamic, dtype=bool), movers, *scene)
     changes = []
     while len(changes) + 1 < c.iterations:
@@ -586,7 +588,8 @@ def hold_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarra
 
 def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, source: np.ndarray, T_ego: np.ndarray,
                   interval: float, target_points: np.ndarray, seen: np.ndarray, surface: ScanSurface,
-                  above_ground: np.ndarray | None, range_image, c: ObjectRefinementConfig) -> ObjectRefinement:
+                  above_ground: np.ndarray | None, range_image, c: ObjectRefinementConfig,
+                  tracked: np.ndarray | None = None) -> ObjectRefinement:
     """One round of :func:`refine_objects` (its arguments, prepared; ``flow`` and ``dynamic``
     are updated in place and returned in the result)."""
     range2 = np.einsum("ij,ij->i", source[:, :2], source[:, :2])
@@ -613,7 +616,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     motion_of = np.full(len(source), -1, dtype=np.int64)  # index of the object motion a point took
     ego_landings = _EgoLandings(source, T_ego, surface, c)  # shared by this round's tests of ego landings
     scene = (source, flow, movers, seen, T_ego, interval, surface, c, range_image, guesses, above_ground)
-    for idx, record in _registered(clusters, *scene, ego_landings=ego_landings):
+    for idx, record in _registered(clusters, *scene, ego_landings=ego_landings, tracked=tracked):
         own = instance[idx] = len(objects)
         motion = record.pop("motion", None)
         if motion is not None:
@@ -854,7 +857,7 @@ def _embedded(source: np.ndarray, solid: np.ndarray, solid_points: np.ndarray, m
 def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray, movers: np.ndarray,
                 seen: np.ndarray, T_ego: np.ndarray, interval: float, surface: ScanSurface,
                 c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None, *,
-                ego_landings: _EgoLandings):
+                ego_landings: _EgoLandings, tracked: np.ndarray | None = None):
     """Yields each cluster (index array into ``source``) with its :func:`_refine_object`
     record (``solid``: (N,) points clear of the ground, or None; ``ego_landings``: the
     round's). A cluster wider than
@@ -863,7 +866,9 @@ def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray
     own (:func:`_explained`): in a crowd or a
     queue one cluster holds several movers, and one rigid motion cannot register them
     all; but a car whose sparse candidate points fall into several components is better
-    registered whole (its pieces slide along their own faces, and explain about as much)."""
+    registered whole (its pieces slide along their own faces, and explain about as much).
+    With ``tracked`` and ``tracked_parts_min_points``, a cluster that ends without a moving
+    point yields its moving :func:`_tracked_parts` first and then itself without them."""
     def refine(group):
         if group:
             ego_landings(np.concatenate(group))  # the group's ego landings in one query
@@ -880,7 +885,42 @@ def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray
             if gained >= c.split_gain * len(idx):
                 yield from split
                 continue
-        yield idx, record
+        moved = _tracked_parts(source, idx, record, tracked, c, refine) if tracked is not None else []
+        yield from moved
+        yield (idx, record) if not moved else _without(idx, record, np.concatenate([i for i, _ in moved]))
+
+
+def _moves(record: dict) -> bool:
+    """Whether an object's record moves any of its points."""
+    return "result" in record and bool(record["result"][1].any())
+
+
+def _tracked_parts(source: np.ndarray, idx: np.ndarray, record: dict, tracked: np.ndarray,
+                   c: ObjectRefinementConfig, refine) -> list[tuple[np.ndarray, dict]]:
+    """The (points, record) of the ``instance_cell_m`` components of a still cluster's
+    (``idx``, ``record``: none of its points moves) ``tracked`` points, of at least
+    ``tracked_parts_min_points`` each, that move when registered on their own (``refine``);
+    [] when the option is off, the cluster moves, or its tracked points are more than
+    ``tracked_parts_max_share`` of it."""
+    if c.tracked_parts_min_points <= 0 or _moves(record):
+        return []
+    mine = idx[tracked[idx]]
+    if mine.size < c.tracked_parts_min_points or mine.size > c.tracked_parts_max_share * idx.size:
+        return []
+    labels = bev_clusters(source[mine], c.instance_cell_m)
+    counts = np.bincount(labels)
+    parts = [mine[labels == b] for b in np.flatnonzero(counts >= c.tracked_parts_min_points)]
+    return [(i, r) for i, r in refine(parts) if _moves(r)]
+
+
+def _without(idx: np.ndarray, record: dict, taken: np.ndarray) -> tuple[np.ndarray, dict]:
+    """The cluster ``idx`` and its ``record`` without the points ``taken`` (indices into the
+    scan): its count and its per-point result cut to the points left."""
+    keep = ~np.isin(idx, taken)
+    record = dict(record, points=int(keep.sum()))
+    if "result" in record:
+        record["result"] = tuple(a[keep] for a in record["result"])
+    return idx[keep], record
 
 
 def _ring_slice(source: np.ndarray, idx: np.ndarray, solid: np.ndarray | None, c: ObjectRefinementConfig) -> bool:
