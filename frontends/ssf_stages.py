@@ -518,8 +518,10 @@ class ObjectsStage:
             if evidence.arrivals:
                 self._surface = (state.frame.index, surface)
         above = ground.above(evidence.ground_clearance_m)  # road clusters and growth
+        # tracked parts (tracked_parts_min_points): what the track carried and the network flags too
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
-                                 state.refined.target_points, movers, seen, surface, above, image, tracked)
+                                 state.refined.target_points, movers, seen, surface, above, image,
+                                 tracked & ~state.static)
         held = hold_tracks(prev, objects, tracked, tracked_flow, T_ego, state.dt, surface, older, c)
         # instances: accepted objects and the unregistered movers' (the rest: -1)
         kept = np.array([o["accepted"] or o.get("unregistered", False) for o in objects.objects] + [False])

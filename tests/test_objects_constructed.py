@@ -830,14 +830,16 @@ def test_a_tracked_walker_inside_a_static_cluster_is_registered_on_its_own():
     flow = geometry.rigid_flow(T_ego, prev)
     flow[walker] += [0.15, 0.0, 0.0]  # the track's carried motion: 5 cm short
     common = (prev, flow, flagged, curr, T_ego, DT)
-    plain = refine_objects(*common, ObjectRefinementConfig(), tracked=walker)
+    plain = refine_objects(*common, ObjectRefinementConfig(tracked_parts_min_points=0), tracked=walker)
     assert plain.dynamic[walker].mean() < 0.1  # the cluster's ICP: the wall's ego motion
-    parts = refine_objects(*common, ObjectRefinementConfig(tracked_parts_min_points=15), tracked=walker)
+    parts = refine_objects(*common, ObjectRefinementConfig(tracked_parts_min_points=15, tracked_parts_max_share=0.8),
+                           tracked=walker)
     assert parts.dynamic[walker].mean() > 0.9
     assert not parts.dynamic[labels < 2].any()
     ids = np.unique(parts.instance[walker & parts.dynamic])
     assert len(ids) == 1 and not np.isin(parts.instance[labels == 1], ids).any()
     assert parts.objects[int(ids[0])]["speed_mps"] == pytest.approx(2.0, abs=0.2)
     # a cluster that the tracked points make up for the most part is left as it was
-    most = refine_objects(*common, ObjectRefinementConfig(tracked_parts_min_points=15), tracked=flagged)
+    most = refine_objects(*common, ObjectRefinementConfig(tracked_parts_min_points=15, tracked_parts_max_share=0.8),
+                          tracked=flagged)
     assert most.dynamic[walker].mean() < 0.1

@@ -505,7 +505,8 @@ def refine_objects(
     :class:`~flowslam.sceneflow.refinement.visibility.RangeImage` of ``target``; with it, an
     object without geometric movers or seen-through points stays static when scan k hides
     where the ego motion puts it (:func:`_static_where_hidden`). ``tracked`` (N,) bool: the
-    candidates the mover track carried from the last pair (for ``tracked_parts_min_points``).
+    candidates the mover track carried from the last pair that may form tracked parts
+    (``tracked_parts_min_points``; the objects stage passes those the network flags too).
     """
     c = config or ObjectRefinementConfig()
     if target_points is None:
