@@ -562,11 +562,8 @@ def hold_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarra
     image, T_old = older
     interval = scan_interval(dt)
     margin, relative = baseline_window_margins(c.motion_evidence)
-    labels = bev_clusters(source[stale], c.instance_cell_m)
-    counts = np.bincount(labels)
     held = 0
-    for label in np.flatnonzero(counts >= c.min_points):
-        idx = stale[labels == label]
+    for idx in _bev_groups(source, stale, c.instance_cell_m, c.min_points):
         p = source[idx]
         ego, landing = transform_points(T_ego, p), p + tracked_flow[idx]
         speed = float(np.linalg.norm(landing - ego, axis=1).mean()) / interval
@@ -600,7 +597,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     objects = []
     settled = np.zeros(len(source), dtype=bool)
     instance = np.full(len(source), -1, dtype=np.int64)
-    clusters = _clusters(source, cand, c)
+    clusters = _bev_groups(source, cand, c.cluster_cell_m, c.min_points)
     guesses = None  # where the candidates land by their input flow: scan k's possible movers
     if range_image is not None and c.hidden_static_share <= 1 and c.hidden_occluder_m > 0 and cand.size:
         from scipy.spatial import cKDTree
@@ -908,9 +905,7 @@ def _tracked_parts(source: np.ndarray, idx: np.ndarray, record: dict, tracked: n
     mine = idx[tracked[idx]]
     if mine.size < c.tracked_parts_min_points or mine.size > c.tracked_parts_max_share * idx.size:
         return []
-    labels = bev_clusters(source[mine], c.instance_cell_m)
-    counts = np.bincount(labels)
-    parts = [mine[labels == b] for b in np.flatnonzero(counts >= c.tracked_parts_min_points)]
+    parts = _bev_groups(source, mine, c.instance_cell_m, c.tracked_parts_min_points)
     return [(i, r) for i, r in refine(parts) if _moves(r)]
 
 
@@ -964,16 +959,17 @@ def _components(source: np.ndarray, idx: np.ndarray, c: ObjectRefinementConfig) 
     return [idx[labels == b] for b in np.sort(big)] if len(big) > 1 else [idx]
 
 
-def _clusters(source: np.ndarray, cand: np.ndarray, c: ObjectRefinementConfig) -> list[np.ndarray]:
-    """The candidate indices ``cand`` grouped into BEV clusters (``cluster_cell_m``) of at
-    least ``min_points`` points, each as an index array into ``source``, by label."""
-    labels = bev_clusters(source[cand], c.cluster_cell_m)
+def _bev_groups(source: np.ndarray, idx: np.ndarray, cell_m: float, min_points: int) -> list[np.ndarray]:
+    """The indices ``idx`` (into ``source``) grouped into BEV clusters of ``cell_m`` cells, those
+    of at least ``min_points`` points, each as an index array in ``idx``'s order, by label: the
+    objects' candidate clusters, the tracked parts of a cluster, the stale tracks to hold."""
+    labels = bev_clusters(source[idx], cell_m)
     if labels.size == 0:
         return []
     counts = np.bincount(labels)
-    order = np.argsort(labels, kind="stable")  # candidates grouped by cluster
+    order = np.argsort(labels, kind="stable")  # indices grouped by cluster
     starts = np.concatenate([[0], np.cumsum(counts)])
-    return [cand[order[starts[label]:starts[label + 1]]] for label in np.flatnonzero(counts >= c.min_points)]
+    return [idx[order[starts[label]:starts[label + 1]]] for label in np.flatnonzero(counts >= min_points)]
 
 
 def _mover_starts(p: np.ndarray, sub: np.ndarray, seen: np.ndarray, T_ego: np.ndarray,
