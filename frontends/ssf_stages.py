@@ -489,7 +489,13 @@ class ObjectsStage:
         whose arrivals ask it."""
 
     def run(self, state: PairState) -> None:
-        from flowslam.sceneflow.refinement.objects import SEEN_EVIDENCE_SHARE, hold_tracks, refine_objects
+        from flowslam.sceneflow.refinement.objects import (
+            SEEN_EVIDENCE_SHARE,
+            hold_tracks,
+            refine_objects,
+            release_tracks,
+            scan_interval,
+        )
         from flowslam.sceneflow.refinement.tracking import object_evidence
         from flowslam.sceneflow.refinement.visibility import geometric_movers
 
@@ -523,16 +529,20 @@ class ObjectsStage:
                                  state.refined.target_points, movers, seen, surface, above, image,
                                  tracked & ~state.static)
         held = hold_tracks(prev, objects, tracked, tracked_flow, T_ego, state.dt, surface, older, c)
-        # instances: accepted objects and the unregistered movers' (the rest: -1)
-        kept = np.array([o["accepted"] or o.get("unregistered", False) for o in objects.objects] + [False])
-        shown = None
-        if c.track_max_quiet_pairs > 0:  # the objects' own evidence this pair, besides the track
+        shown = released = None
+        if c.track_max_quiet_pairs > 0 or c.release_seen_share > 0:  # the objects' own evidence, besides the track
             flags = ~state.static if movers is None else ~state.static | movers | seen
             shown = object_evidence(flags, objects.instance, c.min_seen_through, SEEN_EVIDENCE_SHARE)
+            span_s = self._scans_back(state, evidence.baseline_scans) * scan_interval(state.dt)
+            released = release_tracks(prev, objects, tracked, shown, T_ego, older, span_s, c)
+        # instances: accepted objects and the unregistered movers' (the rest: -1)
+        kept = np.array([o["accepted"] or o.get("unregistered", False) for o in objects.objects] + [False])
         state.flow, state.static = objects.flow, ~objects.dynamic
         state.instance = np.where(kept[objects.instance], objects.instance, -1)
         self.movers.update(prev, objects.flow, objects.dynamic, T_ego, ground, state.instance, shown)
         state.stats.update(objects.stats, tracked_candidates=int(tracked.sum()), tracked_held=held)
+        if released is not None:
+            state.stats["tracked_released"] = released
 
     def _keep_image(self, state: PairState, image) -> None:
         """Keep scan k's range ``image`` with scan k's own pose for later pairs (their older
@@ -602,6 +612,14 @@ class ObjectsStage:
         index, surface = self._surface
         return image, surface if index == state.prev.index else None
 
+    def _scans_back(self, state: PairState, back: int) -> int:
+        """How many scans before scan k-1 the scan :meth:`_older_scan` gives for ``back`` is
+        (0: none): ``back`` when the network's window or the kept images hold it, else the
+        window's oldest."""
+        if back > len(state.history) - 1 and state.prev.index - back in self._images:
+            return back
+        return max(min(back, len(state.history) - 1), 0)
+
     def _older_scan(self, state: PairState, back: int):
         """(range image, own ``T_world_sensor``) of the scan ``back`` scans before scan k-1: from
         the network's window when it holds that scan (its image as kept when it was scan k,
@@ -610,12 +628,11 @@ class ObjectsStage:
         from flowslam.sceneflow.refinement.visibility import RangeImage
 
         history = state.history  # ends with scan k-1
-        kept = self._images.get(state.prev.index - back) if back > len(history) - 1 else None
-        if kept is not None:
-            return kept
-        back = min(back, len(history) - 1)
+        back = self._scans_back(state, back)
         if back < 1:
             return None
+        if back > len(history) - 1:
+            return self._images[state.prev.index - back]
         old = history[-1 - back]
         image = self._images.get(old.index, (None,))[0]
         if image is None:  # a scan this stage did not see as scan k (a run's first scans, a retry)

@@ -1,13 +1,14 @@
 """A tracked walker beside a wall that one scan pair cannot tell from the wall keeps moving
-when an older scan saw through where it is now (``objects.hold_tracks``); real SciPy
-KD-trees and range images, no network. Frames: the sensor stands still, so every scan's
+when an older scan saw through where it is now (``objects.hold_tracks``), and a tracked
+mover without evidence of its own that an older scan saw in place becomes static
+(``objects.release_seen_share``); real SciPy KD-trees and range images, no network. Frames: the sensor stands still, so every scan's
 sensor frame is the world frame; metres, seconds."""
 
 import numpy as np
 
 from flowslam.config import ObjectRefinementConfig
 from flowslam.sceneflow.refinement.clusters import ScanSurface
-from flowslam.sceneflow.refinement.objects import ObjectRefinement, hold_tracks
+from flowslam.sceneflow.refinement.objects import ObjectRefinement, hold_tracks, release_tracks
 from flowslam.sceneflow.refinement.visibility import RangeImage
 
 DT = 0.1
@@ -79,3 +80,45 @@ def test_a_track_is_not_held_when_scan_k_contradicts_its_prediction():
     older = (RangeImage(np.concatenate([WALL, _walker(-7 * STEP)]), c.motion_evidence), np.eye(4))
     assert hold_tracks(source, result, tracked, flow, np.eye(4), DT, ScanSurface(target), older, c) == 0
     assert not result.dynamic.any()
+
+
+def _release(older_scan: np.ndarray | None, span_s: float = 7 * DT, shown: bool = False, **options):
+    """release_tracks on scan k-1 = wall + walker at x 0, where the pair's refinement moved the
+    tracked walker (instance 0, STEP per scan) and left the wall static; ``older_scan``: the scan
+    ``span_s`` before scan k-1 (None: no older scan); ``shown``: the walker showed motion of its
+    own this pair. Returns (released points, result, walker mask)."""
+    c = ObjectRefinementConfig(**{"release_seen_share": 0.7, **options})
+    walker = _walker(0.0)
+    source = np.concatenate([WALL, walker])
+    tracked = np.arange(len(source)) >= len(WALL)
+    result = ObjectRefinement(np.where(tracked[:, None], [STEP, 0.0, 0.0], 0.0), tracked.copy(),
+                              np.where(tracked, 0, -1), [{"points": int(tracked.sum()), "accepted": True,
+                                                          "speed_mps": STEP / DT}])
+    older = None if older_scan is None else (RangeImage(older_scan, c.motion_evidence), np.eye(4))
+    released = release_tracks(source, result, tracked, tracked & shown, np.eye(4), older, span_s, c)
+    return released, result, tracked
+
+
+def test_a_tracked_mover_the_older_scan_saw_in_place_becomes_static():
+    # seven scans back the "walker" stood where it is now: a static body the ICP slid along
+    released, result, walker = _release(np.concatenate([WALL, _walker(0.0)]))
+    assert released == walker.sum()
+    assert not result.dynamic.any() and np.all(result.instance == -1)
+    assert np.allclose(result.flow, 0.0)  # the ego-rigid flow of a sensor standing still
+    record = result.objects[0]
+    assert record["released"] and not record["accepted"] and record["seen_in_place"] == 1.0
+
+
+def test_a_tracked_mover_is_kept_where_the_older_scan_saw_other_things_or_cannot_tell():
+    # the walker came from 0.7 m to the left: where it is now, that scan saw the wall behind
+    assert _release(np.concatenate([WALL, _walker(-7 * STEP)]))[0] == 0
+    # the older scan saw nothing around it (a face far off to the side): nothing is known
+    assert _release(_face(-5.0, 5.0, -11.0))[0] == 0
+    # evidence of its own this pair, a motion too short since the older scan to tell, no
+    # older scan, or the option off: kept
+    in_place = np.concatenate([WALL, _walker(0.0)])
+    assert _release(in_place, shown=True)[0] == 0
+    assert _release(in_place, span_s=2 * DT)[0] == 0
+    assert _release(None)[0] == 0
+    released, result, walker = _release(in_place, release_seen_share=0.0)
+    assert released == 0 and result.dynamic[walker].all() and np.all(result.instance[walker] == 0)

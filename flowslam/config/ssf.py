@@ -550,6 +550,26 @@ class ObjectRefinementConfig(StrictModel):
     hold_free_share: float = Field(0.3, ge=0, le=1)
     """See ``hold_tracks``. Each point's own bin instead of the window held static objects
     of the vlp32c `dt` 362 (its own bin often looks between two rings)."""
+    release_seen_share: float = Field(0.0, ge=0, le=1)
+    """The reverse of ``hold_tracks``: a moving instance holding points the mover track
+    carried, with no evidence of its own this pair (fewer than ``min_seen_through`` points,
+    or 2 % of it, flagged by the network, the geometric or slow-mover tests, or seen
+    through), becomes static when the scan ``motion_evidence.baseline_scans`` back (placed
+    with the frontend's own poses) saw at least this share of its points in place: a return
+    within ``release_margin_m`` of each point's range in the window around its direction
+    (the windows with a return must be at least ``release_min_known`` of its points), while
+    its motion since that scan would have moved it at least ``release_min_shift_m``. A
+    track is a prior: from its start, the ICP of a static bush seen by a few rings of a
+    16-beam sensor slides along it at about a walker's speed pair after pair, where the
+    older scan sees the bush where it stands and a walker's old place holds something else
+    (free space or its old body in front). 0: off."""
+    release_margin_m: float = Field(0.2, gt=0)
+    """See ``release_seen_share`` (m)."""
+    release_min_known: float = Field(0.3, ge=0, le=1)
+    """See ``release_seen_share``."""
+    release_min_shift_m: float = Field(0.4, ge=0)
+    """See ``release_seen_share`` (m): the instance's speed times the time since the older
+    scan; at a run's start that scan is only a few scans back."""
     leftover_share: float = Field(0.15, ge=0, le=1)
     """Share of an object's points left unexplained that ``leftover_motion`` registers."""
     own_surface_m: float = Field(0.3, ge=0)

@@ -83,7 +83,7 @@ from flowslam.sceneflow.refinement.clusters import (
 )
 from flowslam.sceneflow.refinement.visibility import baseline_window_margins
 
-__all__ = ["ObjectRefinement", "hold_tracks", "refine_objects"]
+__all__ = ["ObjectRefinement", "hold_tracks", "refine_objects", "release_tracks"]
 
 
 
@@ -582,6 +582,41 @@ def hold_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarra
                                "speed_mps": speed})
         held += len(idx)
     return held
+
+
+def release_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarray, shown: np.ndarray,
+                   T_ego: np.ndarray, older, span_s: float, c: ObjectRefinementConfig) -> int:
+    """Moving instances the mover track carried that an older scan saw in place become
+    static (``release_seen_share`` in the config: the conditions; the reverse of
+    :func:`hold_tracks`). ``source``: scan k-1 (frame k-1); ``result``: its refinement, updated
+    in place (a released instance's points get the ego-rigid flow of ``T_ego`` =
+    ``T_{k,k-1}``, no instance, and its record ``accepted: False``, ``released: True`` and
+    ``seen_in_place``, the share of its points with a known window that the older scan saw
+    in place); ``tracked`` (N,) bool: the points the track carried
+    (:meth:`~flowslam.sceneflow.refinement.tracking.MoverPrior.predict`); ``shown`` (N,) bool:
+    the points whose instance showed motion of its own this pair
+    (:func:`~flowslam.sceneflow.refinement.tracking.object_evidence`); ``older``: (range image
+    of the scan ``motion_evidence.baseline_scans`` before scan k-1, ``T_old_{k-1}``) or None
+    (nothing is released); ``span_s``: the time (s) from that scan to scan k-1. Returns the
+    number of points released."""
+    if c.release_seen_share <= 0 or older is None:
+        return 0
+    image, T_old = older
+    shown = np.asarray(shown, dtype=bool)
+    carried = np.asarray(tracked, dtype=bool) & result.dynamic & ~shown & (result.instance >= 0)
+    released = 0
+    for j in np.unique(result.instance[carried]):
+        record = result.objects[j]
+        if record.get("speed_mps", 0.0) * span_s < c.release_min_shift_m:
+            continue
+        idx = np.flatnonzero(result.instance == j)
+        known, there = image.seen_at(transform_points(T_old, source[idx]), c.release_margin_m)
+        if known.mean() < c.release_min_known or there.sum() < c.release_seen_share * known.sum():
+            continue
+        result.flow[idx], result.dynamic[idx], result.instance[idx] = rigid_flow(T_ego, source[idx]), False, -1
+        record.update(accepted=False, released=True, seen_in_place=float(there.sum()) / float(known.sum()))
+        released += len(idx)
+    return released
 
 
 def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, source: np.ndarray, T_ego: np.ndarray,

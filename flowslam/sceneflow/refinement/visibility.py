@@ -114,6 +114,14 @@ class RangeImage:
         where = points * (np.where(front, nearest, r) / np.maximum(r, 1e-9))[:, None]
         return front, where
 
+    def seen_at(self, points: np.ndarray, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """((N,) bool: the window around each point's direction (sensor frame of this scan)
+        has a return; (N,) bool: its nearest return lies within ``margin_m`` of the point's
+        range -- this scan saw something where the point is, neither in front nor beyond)."""
+        r, nearest, known, inside = self._lookup(points)
+        known = known & inside
+        return known, known & (np.abs(nearest - r) <= margin_m)
+
     def sees_beyond(self, points: np.ndarray, own_bin: bool = False, margin_m: float | np.ndarray | None = None,
                     relative_margin: float | np.ndarray | None = None) -> np.ndarray:
         """(N,) bool: in the window around each point's direction (sensor frame of this scan)
