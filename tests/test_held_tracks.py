@@ -1,8 +1,9 @@
 """A tracked walker beside a wall that one scan pair cannot tell from the wall keeps moving
 when an older scan saw through where it is now (``objects.hold_tracks``), and a tracked
 mover without evidence of its own that an older scan saw in place becomes static
-(``objects.release_seen_share``); real SciPy KD-trees and range images, no network. Frames: the sensor stands still, so every scan's
-sensor frame is the world frame; metres, seconds."""
+(``objects.release_seen_share``); real SciPy KD-trees and range images, no network.
+Frames: the sensor stands still, so every scan's sensor frame is the world frame; metres,
+seconds."""
 
 import numpy as np
 
@@ -87,7 +88,7 @@ def _release(older_scan: np.ndarray | None, span_s: float = 7 * DT, shown: bool 
     tracked walker (instance 0, STEP per scan) and left the wall static; ``older_scan``: the scan
     ``span_s`` before scan k-1 (None: no older scan); ``shown``: the walker showed motion of its
     own this pair. Returns (released points, result, walker mask)."""
-    c = ObjectRefinementConfig(**{"release_seen_share": 0.7, **options})
+    c = ObjectRefinementConfig(**options)
     walker = _walker(0.0)
     source = np.concatenate([WALL, walker])
     tracked = np.arange(len(source)) >= len(WALL)
