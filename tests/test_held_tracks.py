@@ -115,6 +115,7 @@ def test_a_tracked_mover_is_kept_where_the_older_scan_saw_other_things_or_cannot
     assert _release(np.concatenate([WALL, _walker(-7 * STEP)]))[0] == 0
     # the older scan saw nothing around it (a face far off to the side): nothing is known
     assert _release(_face(-5.0, 5.0, -11.0))[0] == 0
+    assert _release(_face(-5.0, 5.0, -11.0), release_min_known=0.0)[0] == 0
     # evidence of its own this pair, a motion too short since the older scan to tell, no
     # older scan, or the option off: kept
     in_place = np.concatenate([WALL, _walker(0.0)])

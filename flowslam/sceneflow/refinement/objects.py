@@ -611,7 +611,7 @@ def release_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.nda
             continue
         idx = np.flatnonzero(result.instance == j)
         known, there = image.seen_at(transform_points(T_old, source[idx]), c.release_margin_m)
-        if known.mean() < c.release_min_known or there.sum() < c.release_seen_share * known.sum():
+        if not known.any() or known.mean() < c.release_min_known or there.sum() < c.release_seen_share * known.sum():
             continue
         result.flow[idx], result.dynamic[idx], result.instance[idx] = rigid_flow(T_ego, source[idx]), False, -1
         record.update(accepted=False, released=True, seen_in_place=float(there.sum()) / float(known.sum()))
