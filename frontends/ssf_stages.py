@@ -533,8 +533,12 @@ class ObjectsStage:
         if c.track_max_quiet_pairs > 0 or c.release_seen_share > 0:  # the objects' own evidence, besides the track
             flags = ~state.static if movers is None else ~state.static | movers | seen
             shown = object_evidence(flags, objects.instance, c.min_seen_through, SEEN_EVIDENCE_SHARE)
+            asked, geometric = tracked, shown
+            if c.release_any_prior and movers is not None:  # the network's labels are a prior too
+                asked, geometric = None, object_evidence(movers | seen, objects.instance, c.min_seen_through,
+                                                         SEEN_EVIDENCE_SHARE)
             span_s = self._scans_back(state, evidence.baseline_scans) * scan_interval(state.dt)
-            released = release_tracks(prev, objects, tracked, shown, T_ego, older, span_s, c)
+            released = release_tracks(prev, objects, asked, geometric, T_ego, older, span_s, c)
         # instances: accepted objects and the unregistered movers' (the rest: -1)
         kept = np.array([o["accepted"] or o.get("unregistered", False) for o in objects.objects] + [False])
         state.flow, state.static = objects.flow, ~objects.dynamic

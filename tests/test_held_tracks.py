@@ -83,11 +83,13 @@ def test_a_track_is_not_held_when_scan_k_contradicts_its_prediction():
     assert not result.dynamic.any()
 
 
-def _release(older_scan: np.ndarray | None, span_s: float = 7 * DT, shown: bool = False, **options):
+def _release(older_scan: np.ndarray | None, span_s: float = 7 * DT, shown: bool = False, carried: bool | None = True,
+             **options):
     """release_tracks on scan k-1 = wall + walker at x 0, where the pair's refinement moved the
     tracked walker (instance 0, STEP per scan) and left the wall static; ``older_scan``: the scan
     ``span_s`` before scan k-1 (None: no older scan); ``shown``: the walker showed motion of its
-    own this pair. Returns (released points, result, walker mask)."""
+    own this pair; ``carried``: whether the track carried it (None: every instance is asked).
+    Returns (released points, result, walker mask)."""
     c = ObjectRefinementConfig(**options)
     walker = _walker(0.0)
     source = np.concatenate([WALL, walker])
@@ -96,7 +98,8 @@ def _release(older_scan: np.ndarray | None, span_s: float = 7 * DT, shown: bool 
                               np.where(tracked, 0, -1), [{"points": int(tracked.sum()), "accepted": True,
                                                           "speed_mps": STEP / DT}])
     older = None if older_scan is None else (RangeImage(older_scan, c.motion_evidence), np.eye(4))
-    released = release_tracks(source, result, tracked, tracked & shown, np.eye(4), older, span_s, c)
+    asked = None if carried is None else tracked & carried
+    released = release_tracks(source, result, asked, tracked & shown, np.eye(4), older, span_s, c)
     return released, result, tracked
 
 
@@ -124,3 +127,10 @@ def test_a_tracked_mover_is_kept_where_the_older_scan_saw_other_things_or_cannot
     assert _release(None)[0] == 0
     released, result, walker = _release(in_place, release_seen_share=0.0)
     assert released == 0 and result.dynamic[walker].all() and np.all(result.instance[walker] == 0)
+
+
+def test_an_untracked_mover_seen_in_place_is_released_only_when_every_instance_is_asked():
+    in_place = np.concatenate([WALL, _walker(0.0)])
+    assert _release(in_place, carried=False)[0] == 0
+    released, result, walker = _release(in_place, carried=None)
+    assert released == walker.sum() and not result.dynamic.any()

@@ -566,6 +566,11 @@ class ObjectRefinementConfig(StrictModel):
     fresh seeds (stop 71): fresh ``static`` 1001-1006 mean share of points dynamic 0.160 ->
     0.116 % (vlp16 1006: 0.556 -> 0.288 %, the rest identical), ``dt`` 1007-1009 identical,
     ``rush-hour`` 1010-1012 identical or better, KITTI and the AV2 pair identical."""
+    release_any_prior: bool = False
+    """``release_seen_share`` for every moving instance, not only those holding points the
+    track carried, with the network's labels counted as a prior like the track, not as
+    evidence: only the geometric and slow-mover tests and seen-through points keep an
+    instance from being asked. Opt-in."""
     release_margin_m: float = Field(0.2, gt=0)
     """See ``release_seen_share`` (m)."""
     release_min_known: float = Field(0.3, ge=0, le=1)

@@ -584,7 +584,7 @@ def hold_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarra
     return held
 
 
-def release_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarray, shown: np.ndarray,
+def release_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.ndarray | None, shown: np.ndarray,
                    T_ego: np.ndarray, older, span_s: float, c: ObjectRefinementConfig) -> int:
     """Moving instances the mover track carried that an older scan saw in place become
     static (``release_seen_share`` in the config: the conditions; the reverse of
@@ -593,8 +593,9 @@ def release_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.nda
     ``T_{k,k-1}``, no instance, and its record ``accepted: False``, ``released: True`` and
     ``seen_in_place``, the share of its points with a known window that the older scan saw
     in place); ``tracked`` (N,) bool: the points the track carried
-    (:meth:`~flowslam.sceneflow.refinement.tracking.MoverPrior.predict`); ``shown`` (N,) bool:
-    the points whose instance showed motion of its own this pair
+    (:meth:`~flowslam.sceneflow.refinement.tracking.MoverPrior.predict`; None: every instance
+    is asked, ``release_any_prior``); ``shown`` (N,) bool: the points whose instance showed
+    motion of its own this pair
     (:func:`~flowslam.sceneflow.refinement.tracking.object_evidence`); ``older``: (range image
     of the scan ``motion_evidence.baseline_scans`` before scan k-1, ``T_old_{k-1}``) or None
     (nothing is released); ``span_s``: the time (s) from that scan to scan k-1. Returns the
@@ -603,7 +604,9 @@ def release_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.nda
         return 0
     image, T_old = older
     shown = np.asarray(shown, dtype=bool)
-    carried = np.asarray(tracked, dtype=bool) & result.dynamic & ~shown & (result.instance >= 0)
+    carried = result.dynamic & ~shown & (result.instance >= 0)
+    if tracked is not None:
+        carried &= np.asarray(tracked, dtype=bool)
     released = 0
     for j in np.unique(result.instance[carried]):
         record = result.objects[j]
