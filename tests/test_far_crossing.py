@@ -10,7 +10,7 @@ import numpy as np
 
 from flowslam import geometry
 from flowslam.config.ssf import MotionEvidenceConfig
-from flowslam.sceneflow.refinement.visibility import geometric_movers
+from flowslam.sceneflow.refinement.visibility import RangeImage, geometric_movers, slow_movers
 from test_slow_movers import HEIGHT, _box, _grid, _pose, _scan
 
 CAR = (1.8, 4.4, 1.5)  # driving along y: its long side faces the sensor
@@ -54,3 +54,30 @@ def test_a_far_parked_car_is_not_seen_through_in_its_own_bins():
     prev, _, target, T_ego = _pair(0.0)
     movers, seen = geometric_movers(prev, target, T_ego, own)
     assert not movers.any() and not seen.any()
+
+
+def _older_pair(car_shift: float):
+    """(scan k-1, its car mask, the scan 7 before it, ``T_old_{k-1}``): the car stood
+    ``car_shift`` (m, along y) behind its place in scan k-1 then; the ego drove 7 steps."""
+    before, _ = _world(-car_shift)
+    now, car = _world(0.0)
+    return _scan(now, _pose(7)), car, _scan(before, _pose(0)), geometry.inv(_pose(0)) @ _pose(7)
+
+
+def test_far_off_the_slow_test_looks_at_each_points_own_bin():
+    """The car crossed 2.4 m in 7 scans (3.5 m/s): the older scan saw the wall behind the
+    front of its place now. Each point's own bin (``baseline_own_bin_from_m`` 30) flags more
+    of the car than the window, whose neighbouring bins hold the car's old body, its edges and
+    the ground in front of its lowest points; nothing else is flagged, a parked car is not,
+    and with the range beyond the car (40 m) the window decides."""
+    window = MotionEvidenceConfig()
+    own = window.model_copy(update={"baseline_own_bin_from_m": 30.0})
+    prev, car, old, T_old_prev = _older_pair(2.4)
+    by_window = slow_movers(prev, T_old_prev, RangeImage(old, window), window)
+    by_own = slow_movers(prev, T_old_prev, RangeImage(old, own), own)
+    assert by_own[car].sum() > by_window[car].sum() + own.min_points
+    assert not by_own[~car].any()
+    beyond = window.model_copy(update={"baseline_own_bin_from_m": 40.0})
+    assert np.array_equal(slow_movers(prev, T_old_prev, RangeImage(old, beyond), beyond), by_window)
+    parked, _, old_parked, T = _older_pair(0.0)
+    assert not slow_movers(parked, T, RangeImage(old_parked, own), own).any()

@@ -133,6 +133,33 @@ def test_a_partly_flagged_car_grows_to_its_whole_body(pair):
     assert len(np.unique(ids)) == 1 and ids[0] >= 0 and grown.objects[int(ids[0])]["grown_points"] > 0
 
 
+def test_far_off_the_other_tests_flags_count_for_the_growth(pair):
+    """The front half of the moving car is flagged by the other motion tests (``movers``: an
+    older scan's free space), and scan k sees through none of it (as for a car coming
+    towards the sensor). With ``grow_movers_from_m`` nearer than the car (5 m; the car is at
+    8-14 m) those flags count for the growth and the rear half joins; without it, or with the
+    range beyond the car (20 m), the rear half stays static. The parked car and the scene
+    stay static."""
+    prev, curr, labels, T_ego = pair
+    moving = labels == 1
+    front = moving & (prev[:, 0] > 10.0)
+    flow = geometry.rigid_flow(T_ego, prev)
+    flow[front] += [0.8, 0.05, 0.0]
+    above = prev[:, 2] > 0.1  # the road is at z = -0.01
+
+    def run(**options):
+        return refine_objects(prev, flow, front, curr, T_ego, DT, ObjectRefinementConfig(**options),
+                              movers=front, seen_through=np.zeros(len(prev), dtype=bool), above_ground=above)
+
+    far, off, beyond = run(grow_movers_from_m=5.0), run(), run(grow_movers_from_m=20.0)
+    assert off.dynamic[moving].mean() < 0.7 and beyond.dynamic[moving].mean() < 0.7
+    assert np.array_equal(off.dynamic, beyond.dynamic)
+    assert far.dynamic[moving].mean() > 0.95
+    assert not far.dynamic[labels != 1].any()
+    ids = far.instance[moving & far.dynamic]
+    assert len(np.unique(ids)) == 1 and far.objects[int(ids[0])]["grown_points"] > 0
+
+
 def test_the_unseen_rear_of_a_growing_car_moves_with_it(pair):
     """The same half-flagged car, but scan k has no returns from its rear face (hidden, as
     a car's far side is). Its motion does not put the rear face of scan k-1 on scan k's

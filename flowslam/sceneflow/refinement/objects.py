@@ -672,7 +672,10 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
             objects[i][key] = int(len(extra))
 
     if grown and solid is not None and c.grow_max_extent_m > 0:
-        join(_grow(source, solid, grown, settled, seen, T_ego, surface, interval, c), "grown_points")
+        evidence = seen  # the growth's free-space evidence; far off, also the other tests' flags
+        if c.grow_movers_from_m is not None:
+            evidence = seen | (movers & (range2 >= c.grow_movers_from_m ** 2))
+        join(_grow(source, solid, grown, settled, evidence, T_ego, surface, interval, c), "grown_points")
     if grown and solid is not None and c.grow_footprint_cell_m > 0:
         join(_footprint(source, solid, grown, settled, T_ego, surface, interval, c), "footprint_points")
     if motions and solid is not None and c.embedded_share <= 1:

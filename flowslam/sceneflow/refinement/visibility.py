@@ -273,6 +273,9 @@ def slow_movers(
     else:
         margin, relative = baseline_window_margins(c)
         free = old_image.sees_beyond(x, margin_m=margin, relative_margin=relative)
+        if c.baseline_own_bin_from_m is not None:  # far off, each point's own bin
+            far = np.flatnonzero(np.hypot(x[:, 0], x[:, 1]) >= c.baseline_own_bin_from_m)
+            free[far] = old_image.sees_beyond(x[far], own_bin=True, margin_m=margin, relative_margin=relative)
     if c.baseline_vacated and source_image is not None:
         margin, relative = _vacated_margins(x, c)
         front, where = old_image.in_front(x, margin, relative)
