@@ -64,20 +64,21 @@ def _older_pair(car_shift: float):
     return _scan(now, _pose(7)), car, _scan(before, _pose(0)), geometry.inv(_pose(0)) @ _pose(7)
 
 
-def test_far_off_the_slow_test_looks_at_each_points_own_bin():
+def test_far_off_the_slow_test_looks_at_each_points_row_of_the_window():
     """The car crossed 2.4 m in 7 scans (3.5 m/s): the older scan saw the wall behind the
-    front of its place now. Each point's own bin (``baseline_own_bin_from_m`` 30) flags more
-    of the car than the window, whose neighbouring bins hold the car's old body, its edges and
-    the ground in front of its lowest points; nothing else is flagged, a parked car is not,
-    and with the range beyond the car (40 m) the window decides."""
+    front of its place now. Each point's row of the window (``baseline_row_from_m`` 30: its
+    elevation bin and its azimuth neighbours) flags more of the car than the whole window,
+    whose rings above and below hold the car's roof edge and the ground in front of its lowest
+    points; nothing else is flagged, a parked car is not, and with the range beyond the car
+    (40 m) the window decides."""
     window = MotionEvidenceConfig()
-    own = window.model_copy(update={"baseline_own_bin_from_m": 30.0})
+    row = window.model_copy(update={"baseline_row_from_m": 30.0})
     prev, car, old, T_old_prev = _older_pair(2.4)
     by_window = slow_movers(prev, T_old_prev, RangeImage(old, window), window)
-    by_own = slow_movers(prev, T_old_prev, RangeImage(old, own), own)
-    assert by_own[car].sum() > by_window[car].sum() + own.min_points
-    assert not by_own[~car].any()
-    beyond = window.model_copy(update={"baseline_own_bin_from_m": 40.0})
+    by_row = slow_movers(prev, T_old_prev, RangeImage(old, row), row)
+    assert by_row[car].sum() > by_window[car].sum() + row.min_points
+    assert not by_row[~car].any()
+    beyond = window.model_copy(update={"baseline_row_from_m": 40.0})
     assert np.array_equal(slow_movers(prev, T_old_prev, RangeImage(old, beyond), beyond), by_window)
     parked, _, old_parked, T = _older_pair(0.0)
-    assert not slow_movers(parked, T, RangeImage(old_parked, own), own).any()
+    assert not slow_movers(parked, T, RangeImage(old_parked, row), row).any()

@@ -74,6 +74,7 @@ class RangeImage:
         self.window_min = ndimage.minimum_filter(image, size=size, mode=("nearest", "wrap"))
         # ... and whether the window has any return at all
         self.window_known = ndimage.maximum_filter(np.isfinite(image), size=size, mode=("nearest", "wrap"))
+        self._row = None
 
     def _bins(self, az: np.ndarray, el: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         c = self.config
@@ -81,10 +82,11 @@ class RangeImage:
         ie = np.floor((el - self.el0) / c.elevation_resolution_deg).astype(np.int64)
         return ie, ia
 
-    def _lookup(self, points: np.ndarray, own_bin: bool = False):
+    def _lookup(self, points: np.ndarray, own_bin: bool = False, row: bool = False):
         """(range (N,), nearest return in each point's window (N,) -- in its own bin with
-        ``own_bin`` --, whether that window (bin) has any return (N,), whether the point's
-        direction lies within the image's elevations (N,))."""
+        ``own_bin``, in its row of the window (its elevation bin only) with ``row`` --, whether
+        that window (bin, row) has any return (N,), whether the point's direction lies within
+        the image's elevations (N,))."""
         az, el, r = spherical(np.asarray(points, dtype=np.float64))
         ie, ia = self._bins(az, el)
         inside = (ie >= 0) & (ie < self.n_el)
@@ -92,7 +94,21 @@ class RangeImage:
         if own_bin:
             nearest = self.nearest[ie, ia]
             return r, nearest, np.isfinite(nearest), inside
+        if row:
+            row_min, row_known = self._rows()
+            return r, row_min[ie, ia], row_known[ie, ia], inside
         return r, self.window_min[ie, ia], self.window_known[ie, ia], inside
+
+    def _rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """(nearest return, whether any) over each bin and its ``window`` azimuth neighbours in
+        its own elevation bin; computed on first use."""
+        if self._row is None:
+            from scipy import ndimage
+
+            size = (1, 2 * self.config.window + 1)
+            self._row = (ndimage.minimum_filter(self.nearest, size=size, mode=("nearest", "wrap")),
+                         ndimage.maximum_filter(np.isfinite(self.nearest), size=size, mode=("nearest", "wrap")))
+        return self._row
 
     def _margins(self, margin_m, relative_margin) -> tuple:
         """(margin (m), relative margin): the given ones, the config's where None."""
@@ -123,13 +139,13 @@ class RangeImage:
         return known, known & (np.abs(nearest - r) <= margin_m)
 
     def sees_beyond(self, points: np.ndarray, own_bin: bool = False, margin_m: float | np.ndarray | None = None,
-                    relative_margin: float | np.ndarray | None = None) -> np.ndarray:
+                    relative_margin: float | np.ndarray | None = None, row: bool = False) -> np.ndarray:
         """(N,) bool: in the window around each point's direction (sensor frame of this scan)
         -- or in its own bin, with ``own_bin`` -- at least one bin has a return and every
         return lies clearly beyond the point: farther than r + ``margin_m`` +
         ``relative_margin`` r (the config's margins unless given; scalars or (N,))."""
         margin, relative = self._margins(margin_m, relative_margin)
-        r, nearest, known, inside = self._lookup(points, own_bin)
+        r, nearest, known, inside = self._lookup(points, own_bin, row)
         return inside & known & (nearest > r + margin + relative * r)
 
 
@@ -273,9 +289,9 @@ def slow_movers(
     else:
         margin, relative = baseline_window_margins(c)
         free = old_image.sees_beyond(x, margin_m=margin, relative_margin=relative)
-        if c.baseline_own_bin_from_m is not None:  # far off, each point's own bin
-            far = np.flatnonzero(np.hypot(x[:, 0], x[:, 1]) >= c.baseline_own_bin_from_m)
-            free[far] = old_image.sees_beyond(x[far], own_bin=True, margin_m=margin, relative_margin=relative)
+        if c.baseline_row_from_m is not None:  # far off, each point's row of the window
+            far = np.flatnonzero(np.hypot(x[:, 0], x[:, 1]) >= c.baseline_row_from_m)
+            free[far] = old_image.sees_beyond(x[far], row=True, margin_m=margin, relative_margin=relative)
     if c.baseline_vacated and source_image is not None:
         margin, relative = _vacated_margins(x, c)
         front, where = old_image.in_front(x, margin, relative)
