@@ -71,7 +71,7 @@ def test_far_off_the_slow_test_looks_at_each_points_row_of_the_window():
     whose rings above and below hold the car's roof edge and the ground in front of its lowest
     points; nothing else is flagged, a parked car is not, and with the range beyond the car
     (40 m) the window decides."""
-    window = MotionEvidenceConfig()
+    window = MotionEvidenceConfig(baseline_row_from_m=None)
     row = window.model_copy(update={"baseline_row_from_m": 30.0})
     prev, car, old, T_old_prev = _older_pair(2.4)
     by_window = slow_movers(prev, T_old_prev, RangeImage(old, window), window)

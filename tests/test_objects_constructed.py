@@ -151,7 +151,7 @@ def test_far_off_the_other_tests_flags_count_for_the_growth(pair):
         return refine_objects(prev, flow, front, curr, T_ego, DT, ObjectRefinementConfig(**options),
                               movers=front, seen_through=np.zeros(len(prev), dtype=bool), above_ground=above)
 
-    far, off, beyond = run(grow_movers_from_m=5.0), run(), run(grow_movers_from_m=20.0)
+    far, off, beyond = run(grow_movers_from_m=5.0), run(grow_movers_from_m=None), run(grow_movers_from_m=20.0)
     assert off.dynamic[moving].mean() < 0.7 and beyond.dynamic[moving].mean() < 0.7
     assert np.array_equal(off.dynamic, beyond.dynamic)
     assert far.dynamic[moving].mean() > 0.95

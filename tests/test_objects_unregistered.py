@@ -56,7 +56,7 @@ def test_dynamic_points_outside_accepted_objects_become_instances_split_like_reg
 
 
 def test_a_flagged_mover_beyond_the_objects_range_gets_an_instance_with_the_option():
-    """The network flags a walker at 90 m (beyond ``max_range_m``: no ICP) and returns of
+    """The network flags a walker at 90 m (beyond ``max_range_m``, 80 m here: no ICP) and returns of
     the ego vehicle's own body at 1.6 m (within ``min_range_m``). Both stay dynamic (nothing
     of scan k lies at their ego landings), with the same flow and labels either way; with
     ``unregistered_instances`` the walker is an instance, the ego body never is."""
@@ -72,8 +72,8 @@ def test_a_flagged_mover_beyond_the_objects_range_gets_an_instance_with_the_opti
     flow = geometry.rigid_flow(T_EGO, prev)
     flow[is_walker] += [0.15, 0.0, 0.0]
 
-    results = [refine_objects(prev, flow, is_walker | is_body, curr, T_EGO, DT,
-                              ObjectRefinementConfig(unregistered_instances=on)) for on in (False, True)]
+    configs = [ObjectRefinementConfig(unregistered_instances=on, max_range_m=80.0) for on in (False, True)]
+    results = [refine_objects(prev, flow, is_walker | is_body, curr, T_EGO, DT, c) for c in configs]
 
     without, with_ = results
     assert np.array_equal(without.dynamic, with_.dynamic) and np.allclose(without.flow, with_.flow)

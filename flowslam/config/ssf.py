@@ -135,12 +135,14 @@ class MotionEvidenceConfig(StrictModel):
 
     enabled: bool = True
     """Add geometric movers to the objects' candidates."""
-    max_range_m: float = Field(70.0, gt=0)
+    max_range_m: float = Field(110.0, gt=0)
     """Points farther than this (horizontal distance, m) are not tested. 70 m (was 40) with
     ``objects.max_range_m`` 80 and ``objects.instance_gap_rad`` 0.02, adopted by a rule
     written before fresh seeds (stop 50): fresh ``dt`` 541-544 all-points instance recall
-    +0.026 to +0.092, precision within 0.011, EPE3D and Dynamic IoU not worse
-    (docs/sceneflow_evaluation.md)."""
+    +0.026 to +0.092, precision within 0.011, EPE3D and Dynamic IoU not worse. 110 m (stop 72):
+    the simulated sensors reach 120 m, and on tuning ``dt`` 1008 56 of 273 missed GT object-pairs
+    were vehicles beyond 80 m, none of them a candidate.
+    Adopted by rule 24 with ``baseline_row_from_m`` (see there)."""
     azimuth_resolution_deg: float = Field(0.4, gt=0)
     """Azimuth bin of the range image."""
     elevation_resolution_deg: float = Field(0.4, gt=0)
@@ -220,16 +222,21 @@ class MotionEvidenceConfig(StrictModel):
     (fresh `static` 0.14 -> 0.45 % of points). Stop 62, with margins 0.5 m and 0.03: fresh
     `dt` 721 / 722 region recall 0.848 / 0.725 -> 0.840 / 0.761, `static` 724 / 725 at most
     0.10 % dynamic; under its rule's +0.02 mean recall, so still opt-in."""
-    baseline_row_from_m: float | None = Field(None, ge=0)
-    """Opt-in: the free-space test against an older scan (``baseline_own_bin`` false) looks at
+    baseline_row_from_m: float | None = Field(40.0, ge=0)
+    """The free-space test against an older scan (``baseline_own_bin`` false) looks at
     each point's row of the window -- its own elevation bin and its azimuth neighbours --
     where the point lies at least this far from the older scan's sensor (horizontal range, m).
     Far off, the window's elevation neighbours are other rings, whose returns from the ground
     in front of a vehicle keep the window from seeing beyond it: on tuning ``dt`` 1008, 85 of
     108 vehicle-pairs at 40-80 m were missed, and the older scan's window saw beyond 17 % of a
     crossing vehicle's points, its own bins 37 %. Each point's own bin alone (stop 72, rule 23)
-    also moved a static post 50 m behind the sensor on real KITTI (its edge, one bin off); the
-    row keeps the azimuth neighbours. None: the window everywhere."""
+    also moved a static object 50 m behind the sensor on real KITTI 0-15; the row keeps the
+    azimuth neighbours. None: the window everywhere.
+    Adopted by rule 24 (stop 72), written before fresh seeds, together with ``objects.max_range_m``
+    120, ``motion_evidence.max_range_m`` 110, ``baseline_row_from_m`` 40 and ``grow_movers_from_m``
+    40: fresh 100-scan ``dt`` 1037 / 1038 / 1039 all-points instance recall +0.017 / +0.020 / 0,
+    nothing worse on fresh ``static`` 1031-1036 or ``rush-hour`` 1040-1042, KITTI objects stage
+    1.018x (docs/sceneflow_evaluation.md)."""
     baseline_vacated: bool = True
     """Slow movers also where the older scan saw something in front of the point (the
     nearest return of the seen-through test's window, at most ``baseline_vacated_max_m`` in
@@ -297,9 +304,10 @@ class ObjectRefinementConfig(StrictModel):
 
     enabled: bool = True
     """False: static points get the rigid flow of the measurement, the rest the network's flow."""
-    max_range_m: float = Field(80.0, gt=0)
+    max_range_m: float = Field(120.0, gt=0)
     """Candidates farther than this (xy, m) are left as the network said (80 m, was 50:
-    with ``motion_evidence.max_range_m`` 70 and ``instance_gap_rad`` 0.02, stop 50)."""
+    with ``motion_evidence.max_range_m`` 70 and ``instance_gap_rad`` 0.02, stop 50; 120 m with
+    ``motion_evidence.max_range_m`` 110, stop 72, rule 24)."""
     min_range_m: float = Field(2.0, ge=0)
     """... and those nearer than this (xy): returns of the ego vehicle's own body, which
     move with the sensor (real KITTI frames 0-15: 15-25 points at 1.4-1.8 m, behind the
@@ -624,14 +632,15 @@ class ObjectRefinementConfig(StrictModel):
     (free space in scan k where they were, ``motion_evidence``): an object of scan k-1
     hidden in scan k also fits some shifted surface by ICP, but scan k does not see
     through it (static preset: the grown false movers were such objects)."""
-    grow_movers_from_m: float | None = Field(None, ge=0)
-    """Opt-in: beyond this range (horizontal, m) that count also takes the points the
+    grow_movers_from_m: float | None = Field(40.0, ge=0)
+    """Beyond this range (horizontal, m) that count also takes the points the
     motion-evidence tests flagged (geometric and slow movers: free space of scan k or of an
     older scan where they are now). An object coming towards the sensor hides its old place
     behind its new one, so scan k sees through none of it: on tuning ``dt`` 1008 a car
     approaching at 75-98 m, found moving at its GT speed in every pair, kept 35-49 % of its
     points (the flagged part) and was missed. Counting them at every range cost tuning ``dt``
-    1008 / 1014 0.05 / 0.01 of Dynamic IoU (walkers grown into what they walk along). None: never."""
+    1008 / 1014 0.04 / 0.01 of Dynamic IoU (walkers grown into what they walk along). None: never.
+    Adopted by rule 24 with ``motion_evidence.baseline_row_from_m`` (see there)."""
     grow_footprint_cell_m: float = Field(0.3, ge=0)
     """> 0: a moving object also takes the points clear of the ground in its own BEV cells
     of this size (m) that its motion explains better than the ego motion (the growth's
