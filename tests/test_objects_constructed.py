@@ -102,6 +102,17 @@ def test_a_moving_car_becomes_one_dynamic_instance_and_the_parked_car_stays_stat
     assert record["accepted"] and record["speed_mps"] == pytest.approx(10.0, abs=0.2)
 
 
+def _front_flagged(pair):
+    """(the moving car's points, its front half (x > 10 m in the world), the flow with the
+    network's rough guess on that half, the points clear of the road) of the scene ``pair``."""
+    prev, _, labels, T_ego = pair
+    moving = labels == 1
+    front = moving & (prev[:, 0] > 10.0)
+    flow = geometry.rigid_flow(T_ego, prev)
+    flow[front] += [0.8, 0.05, 0.0]
+    return moving, front, flow, prev[:, 2] > 0.1  # the road is at z = -0.01
+
+
 def test_a_partly_flagged_car_grows_to_its_whole_body(pair):
     """The "network" flags only the front half of the moving car (x > 10 m in the world): the
     object's ICP finds the car's motion from that half, and the rest of the car's
@@ -112,11 +123,7 @@ def test_a_partly_flagged_car_grows_to_its_whole_body(pair):
     from flowslam.sceneflow.refinement.visibility import geometric_movers
 
     prev, curr, labels, T_ego = pair
-    moving = labels == 1
-    front = moving & (prev[:, 0] > 10.0)
-    flow = geometry.rigid_flow(T_ego, prev)
-    flow[front] += [0.8, 0.05, 0.0]
-    above = prev[:, 2] > 0.1  # the road is at z = -0.01
+    moving, front, flow, above = _front_flagged(pair)
     _, seen = geometric_movers(prev, curr, T_ego)
     assert seen[moving].sum() >= 5 and not seen[labels != 1].any()  # free space where the car was
     common = (prev, flow, front, curr, T_ego, DT)
@@ -141,11 +148,7 @@ def test_far_off_the_other_tests_flags_count_for_the_growth(pair):
     range beyond the car (20 m), the rear half stays static. The parked car and the scene
     stay static."""
     prev, curr, labels, T_ego = pair
-    moving = labels == 1
-    front = moving & (prev[:, 0] > 10.0)
-    flow = geometry.rigid_flow(T_ego, prev)
-    flow[front] += [0.8, 0.05, 0.0]
-    above = prev[:, 2] > 0.1  # the road is at z = -0.01
+    moving, front, flow, above = _front_flagged(pair)
 
     def run(**options):
         return refine_objects(prev, flow, front, curr, T_ego, DT, ObjectRefinementConfig(**options),
