@@ -141,7 +141,8 @@ class RangeImage:
     def sees_beyond(self, points: np.ndarray, own_bin: bool = False, margin_m: float | np.ndarray | None = None,
                     relative_margin: float | np.ndarray | None = None, row: bool = False) -> np.ndarray:
         """(N,) bool: in the window around each point's direction (sensor frame of this scan)
-        -- or in its own bin, with ``own_bin`` -- at least one bin has a return and every
+        -- or in its own bin, with ``own_bin``, or in its row of the window (its own elevation
+        bin and its azimuth neighbours), with ``row`` -- at least one bin has a return and every
         return lies clearly beyond the point: farther than r + ``margin_m`` +
         ``relative_margin`` r (the config's margins unless given; scalars or (N,))."""
         margin, relative = self._margins(margin_m, relative_margin)
