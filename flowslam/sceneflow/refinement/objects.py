@@ -771,6 +771,8 @@ def _grow(source: np.ndarray, solid: np.ndarray, grown: list, settled: np.ndarra
                 continue
             margin = None  # _joins' own: static_preference
             if own is None:  # a part of a wide component: its motion refitted on it, from the object's
+                if _ego_lands_near(source[members], T_ego, surface, c):
+                    continue
                 own, margin = _refit(source[members], motion, surface, c), c.grow_wide_margin
             joined = _joins(source, members, taken, own, T_ego, surface, interval, c, margin)
             if joined is not None:
@@ -786,6 +788,16 @@ def _parts_holding(source: np.ndarray, members: np.ndarray, core: np.ndarray, c:
     small = bev_extent(source[members, :2], labels, int(labels.max()) + 1) <= c.grow_max_extent_m
     held = np.unique(labels[np.isin(members, core)])
     return [members[labels == part] for part in held[small[held]]]
+
+
+def _ego_lands_near(p: np.ndarray, T_ego: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> bool:
+    """Whether at least ``grow_wide_ego_near_share`` of the points ``p`` (frame k-1) land within
+    ``grow_wide_ego_near_m`` of a scan-k point under the ego motion ``T_ego`` (False when that
+    is 0)."""
+    if c.grow_wide_ego_near_m <= 0:
+        return False
+    dist, _ = surface.nearest(transform_points(T_ego, p), c.grow_wide_ego_near_m)
+    return np.count_nonzero(np.isfinite(dist)) >= c.grow_wide_ego_near_share * len(p)
 
 
 def _refit(q: np.ndarray, motion: np.ndarray, surface: ScanSurface, c: ObjectRefinementConfig) -> np.ndarray:
