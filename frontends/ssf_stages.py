@@ -527,7 +527,7 @@ class ObjectsStage:
         # tracked parts (tracked_parts_min_points): what the track carried and the network flags too
         objects = refine_objects(prev, flow, dynamic, state.frame.points, T_ego, state.dt, c,
                                  state.refined.target_points, movers, seen, surface, above, image,
-                                 tracked & ~state.static)
+                                 tracked & ~state.static, self._slide_view(state, older))
         held = hold_tracks(prev, objects, tracked, tracked_flow, T_ego, state.dt, surface, older, c)
         shown = released = None
         if c.track_max_quiet_pairs > 0 or c.release_seen_share > 0:  # the objects' own evidence, besides the track
@@ -547,6 +547,19 @@ class ObjectsStage:
         state.stats.update(objects.stats, tracked_candidates=int(tracked.sum()), tracked_held=held)
         if released is not None:
             state.stats["tracked_released"] = released
+
+    def _slide_view(self, state: PairState, older):
+        """The :class:`~flowslam.sceneflow.refinement.slide.OlderView` of ``older`` (the
+        :meth:`_older_view`) for the objects' slide test, with the slow-mover test's margins;
+        None when ``slide_free_share`` is off or there is no older scan."""
+        from flowslam.sceneflow.refinement.slide import OlderView
+        from flowslam.sceneflow.refinement.visibility import baseline_window_margins
+
+        evidence = self.options.motion_evidence
+        if self.options.slide_free_share <= 0 or older is None:
+            return None
+        back = self._scans_back(state, evidence.baseline_scans)
+        return OlderView(*older, back, *baseline_window_margins(evidence), evidence.baseline_row_from_m)
 
     def _keep_image(self, state: PairState, image) -> None:
         """Keep scan k's range ``image`` with scan k's own pose for later pairs (their older

@@ -845,6 +845,28 @@ class ObjectRefinementConfig(StrictModel):
     these distances along their principal (BEV) axis."""
     min_seen_through: int = Field(5, ge=1)
     """Seen-through points an object needs for those extra starts."""
+    slide_free_share: float = Field(0.0, ge=0, le=1)
+    """> 0: an object wider than a person (``PERSON_MAX_EXTENT_M``) that its ICP leaves
+    without a motion of its own, and where the scan ``motion_evidence.baseline_scans`` before
+    scan k-1 saw through at least this share of its points clear of the ground, gets the
+    slowest slide along its principal axis that puts them back where that scan did not see
+    through (:func:`flowslam.sceneflow.refinement.slide.slide_motion`): a vehicle driving
+    along its own side, crossing the line of sight, fits scan k under the ego motion as well
+    as under its own (tuning `dt` 1014: a car at 35-43 m, 5 m/s, static in 17 pairs with
+    35-76 % of its points flagged by the slow-mover test). 0.25 on tuning `dt` 1007 / 1008 /
+    1014: all-points recall +0.017 / +0.008 / +0.014, `static` unchanged; rule 26 failed on
+    fresh seeds: `dt` 1055-1057 +0.005 / +0.003 / 0 (the clause asked a mean of +0.006), no
+    fresh `static` or `rush-hour` seed worse (docs/sceneflow_evaluation.md, stop 73). 0: off."""
+    slide_min_range_m: float = Field(20.0, ge=0)
+    """... only objects whose centroid lies at least this far (m, horizontally): nearer, the
+    older scan looked from metres away at another angle, and on a 16-beam sensor its rings
+    passed over a parked car's roof (tuning `dt` 1039: a parked car at 4 m slid at 4 m/s)."""
+    slide_max_free_share: float = Field(0.05, ge=0, le=1)
+    """... the share of the object's points a slide may leave in the older scan's free space."""
+    slide_step_m: float = Field(0.1, gt=0)
+    """... the slides tried: multiples of this (m per scan interval), smallest first."""
+    slide_max_step_m: float = Field(2.0, gt=0)
+    """... and at most this (m per scan interval: 20 m/s at 10 Hz)."""
     dynamic_speed_mps: float = Field(0.5, ge=0)
     """Objects moving faster than this (relative to the ego-motion flow) are dynamic."""
     horizontal_departure: bool = True

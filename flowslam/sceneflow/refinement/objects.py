@@ -81,6 +81,7 @@ from flowslam.sceneflow.refinement.clusters import (
     lowest_per_cell,
     ring_count,
 )
+from flowslam.sceneflow.refinement.slide import OlderView, slide_motion
 from flowslam.sceneflow.refinement.visibility import baseline_window_margins
 
 __all__ = ["ObjectRefinement", "hold_tracks", "refine_objects", "release_tracks"]
@@ -479,6 +480,7 @@ def refine_objects(
     above_ground: np.ndarray | None = None,
     range_image=None,
     tracked: np.ndarray | None = None,
+    older: OlderView | None = None,
 ) -> ObjectRefinement:
     """Refine the flow of the candidate moving points of ``source`` (scan k-1) against
     ``target`` (scan k) given the ego motion ``T_ego`` = ``T_{k,k-1}`` (module doc), in at
@@ -507,6 +509,7 @@ def refine_objects(
     where the ego motion puts it (:func:`_static_where_hidden`). ``tracked`` (N,) bool: the
     candidates the mover track carried from the last pair that may form tracked parts
     (``tracked_parts_min_points``; the objects stage passes those the network flags too).
+    ``older``: an older scan's free space, for the slide test (``slide_free_share``).
     """
     c = config or ObjectRefinementConfig()
     if target_points is None:
@@ -516,7 +519,7 @@ def refine_objects(
     movers = np.zeros(len(source), dtype=bool) if movers is None else np.asarray(movers, dtype=bool)
     seen = np.zeros(len(source), dtype=bool) if seen_through is None else np.asarray(seen_through, dtype=bool)
     interval = scan_interval(dt)
-    scene = (source, T_ego, interval, target_points, seen, surface, above_ground, range_image, c, tracked)
+    scene = (source, T_ego, interval, target_points, seen, surface, above_ground, range_image, c, tracked, older)
     result = _refine_round(np.array(flow, dtype=np.float64), np.array(dynamic, dtype=bool), movers, *scene)
     changes = []
     while len(changes) + 1 < c.iterations:
@@ -625,7 +628,7 @@ def release_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.nda
 def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, source: np.ndarray, T_ego: np.ndarray,
                   interval: float, target_points: np.ndarray, seen: np.ndarray, surface: ScanSurface,
                   above_ground: np.ndarray | None, range_image, c: ObjectRefinementConfig,
-                  tracked: np.ndarray | None = None) -> ObjectRefinement:
+                  tracked: np.ndarray | None = None, older: OlderView | None = None) -> ObjectRefinement:
     """One round of :func:`refine_objects` (its arguments, prepared; ``flow`` and ``dynamic``
     are updated in place and returned in the result)."""
     range2 = np.einsum("ij,ij->i", source[:, :2], source[:, :2])
@@ -652,7 +655,7 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     motion_of = np.full(len(source), -1, dtype=np.int64)  # index of the object motion a point took
     ego_landings = _EgoLandings(source, T_ego, surface, c)  # shared by this round's tests of ego landings
     scene = (source, flow, movers, seen, T_ego, interval, surface, c, range_image, guesses, above_ground)
-    for idx, record in _registered(clusters, *scene, ego_landings=ego_landings, tracked=tracked):
+    for idx, record in _registered(clusters, *scene, ego_landings=ego_landings, tracked=tracked, older=older):
         own = instance[idx] = len(objects)
         motion = record.pop("motion", None)
         if motion is not None:
@@ -908,7 +911,7 @@ def _embedded(source: np.ndarray, solid: np.ndarray, solid_points: np.ndarray, m
 def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray, movers: np.ndarray,
                 seen: np.ndarray, T_ego: np.ndarray, interval: float, surface: ScanSurface,
                 c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None, *,
-                ego_landings: _EgoLandings, tracked: np.ndarray | None = None):
+                ego_landings: _EgoLandings, tracked: np.ndarray | None = None, older: OlderView | None = None):
     """Yields each cluster (index array into ``source``) with its :func:`_refine_object`
     record (``solid``: (N,) points clear of the ground, or None; ``ego_landings``: the
     round's). A cluster wider than
@@ -919,14 +922,15 @@ def _registered(clusters: list[np.ndarray], source: np.ndarray, flow: np.ndarray
     all; but a car whose sparse candidate points fall into several components is better
     registered whole (its pieces slide along their own faces, and explain about as much).
     With ``tracked`` and ``tracked_parts_min_points``, a cluster that ends without a moving
-    point yields its moving :func:`_tracked_parts` first and then itself without them."""
+    point yields its moving :func:`_tracked_parts` first and then itself without them.
+    ``older``: passed to :func:`_refine_object` (the slide test)."""
     def refine(group):
         if group:
             ego_landings(np.concatenate(group))  # the group's ego landings in one query
         for idx in group:
             yield idx, _refine_object(source[idx], flow[idx], movers[idx], seen[idx], T_ego, interval, surface,
                                       ego_landings(idx), c, range_image, guesses, None if solid is None else solid[idx],
-                                      ring_slice=lambda idx=idx: _ring_slice(source, idx, solid, c))
+                                      ring_slice=lambda idx=idx: _ring_slice(source, idx, solid, c), older=older)
 
     for idx, record in refine(clusters):
         parts = _components(source, idx, c)
@@ -1085,13 +1089,14 @@ def _target_box(surface: ScanSurface, guess: np.ndarray, ego: np.ndarray, reach:
 def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.ndarray, T_ego: np.ndarray,
                    interval: float, surface: ScanSurface, ego_surface: tuple[np.ndarray, np.ndarray],
                    c: ObjectRefinementConfig, range_image=None, guesses=None, solid: np.ndarray | None = None,
-                   ring_slice: Callable[[], bool] | None = None) -> dict:
+                   ring_slice: Callable[[], bool] | None = None, older: OlderView | None = None) -> dict:
     """Register one object (points ``p``, frame k-1; their flow; its geometric movers ``sub``
     and seen-through points; ``ego_surface``: the :func:`_surface_distances` of their
     landings under ``T_ego``, whose :func:`_fit` is its static score) to scan k,
     ``interval`` (s) after; ``ring_slice``: None, or a function that says whether it lies
     on too few rings (:func:`_ring_slice`; asked only of an object that would get an ICP),
-    so that it stays static without one. Returns its record; an accepted one also holds
+    so that it stays static without one; ``older``: the older scan's free space for
+    :func:`_slid` (None: no slide test). Returns its record; an accepted one also holds
     ``result``: (landing (M,3) of each point in frame k, moving (M,) bool)."""
     ego = transform_points(T_ego, p)  # where the points land if they are static
     ego_dist, ego_plane = ego_surface
@@ -1158,6 +1163,11 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         if len(kept) < len(motions):
             record["unobservable_motions"] = len(motions) - len(kept)
         motions = kept
+    if not motions and older is not None and c.slide_free_share > 0:
+        slid = _slid(p, solid, T_ego, older, surface, c)
+        if slid is not None:
+            motions.append(slid)
+            record.update(accepted=True, slid=True)
     if record["accepted"]:
         if motions:
             record["motion"] = motions[0]
@@ -1166,6 +1176,20 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
         record["speed_mps"] = 0.0  # a moving object's: :func:`_split_instances`, from its final flow
         record["result"] = (np.where(moving[:, None], landing, ego), moving, which)
     return record
+
+
+def _slid(p: np.ndarray, solid: np.ndarray | None, T_ego: np.ndarray, older: OlderView, surface: ScanSurface,
+          c: ObjectRefinementConfig) -> np.ndarray | None:
+    """``slide_free_share``: the slide motion (:func:`~flowslam.sceneflow.refinement.slide.slide_motion`)
+    of an object (points ``p``, frame k-1; ``solid``: those clear of the ground, None: all)
+    wider than ``PERSON_MAX_EXTENT_M`` and at least ``slide_min_range_m`` away, along the
+    principal axis of its solid points, scored on scan k by :func:`_score`; None without one."""
+    body = p if solid is None else p[solid]
+    if len(body) < c.min_points or np.hypot(*np.ptp(body[:, :2], axis=0)) <= PERSON_MAX_EXTENT_M:
+        return None
+    if np.hypot(*body[:, :2].mean(axis=0)) < c.slide_min_range_m:
+        return None
+    return slide_motion(body, _principal_axis(body), T_ego, older, lambda T: _score(body, T, surface, c), c)
 
 
 def _slow_and_needless(p: np.ndarray, ego: np.ndarray, ego_plane: np.ndarray, whole: np.ndarray,
