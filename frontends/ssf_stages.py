@@ -550,16 +550,14 @@ class ObjectsStage:
 
     def _slide_view(self, state: PairState, older):
         """The :class:`~flowslam.sceneflow.refinement.slide.OlderView` of ``older`` (the
-        :meth:`_older_view`) for the objects' slide test, with the slow-mover test's margins;
-        None when ``slide_free_share`` is off or there is no older scan."""
+        :meth:`_older_view`) for the objects' slide test, with the slow-mover test's free-space
+        test; None when ``slide_free_share`` is off or there is no older scan."""
         from flowslam.sceneflow.refinement.slide import OlderView
-        from flowslam.sceneflow.refinement.visibility import baseline_window_margins
 
         evidence = self.options.motion_evidence
         if self.options.slide_free_share <= 0 or older is None:
             return None
-        back = self._scans_back(state, evidence.baseline_scans)
-        return OlderView(*older, back, *baseline_window_margins(evidence), evidence.baseline_row_from_m)
+        return OlderView(*older, self._scans_back(state, evidence.baseline_scans), evidence)
 
     def _keep_image(self, state: PairState, image) -> None:
         """Keep scan k's range ``image`` with scan k's own pose for later pairs (their older

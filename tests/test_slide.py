@@ -13,7 +13,7 @@ from flowslam.config.ssf import MotionEvidenceConfig, ObjectRefinementConfig
 from flowslam.sceneflow.refinement.clusters import ScanSurface
 from flowslam.sceneflow.refinement.objects import _principal_axis, _score
 from flowslam.sceneflow.refinement.slide import OlderView, slide_motion
-from flowslam.sceneflow.refinement.visibility import RangeImage, baseline_window_margins
+from flowslam.sceneflow.refinement.visibility import RangeImage
 from test_far_crossing import _world
 from test_slow_movers import HEIGHT, _grid, _pose, _scan
 
@@ -35,8 +35,7 @@ def _scene(step: float, hidden_below_y: float | None = None):
     prev, target = _scan(prev_world, _pose(BACK)), _scan(next_world, _pose(BACK + 1))
     T_ego = geometry.inv(_pose(BACK + 1)) @ _pose(BACK)
     T_old_prev = geometry.inv(_pose(0)) @ _pose(BACK)
-    view = OlderView(RangeImage(old, evidence), T_old_prev, BACK, *baseline_window_margins(evidence),
-                     evidence.baseline_row_from_m)
+    view = OlderView(RangeImage(old, evidence), T_old_prev, BACK, evidence)
     return prev, car, target, T_ego, view
 
 

@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from flowslam.config.ssf import MotionEvidenceConfig
 from flowslam.geometry import transform_points
+from flowslam.sceneflow.refinement.visibility import free_in_older
 
 __all__ = ["OlderView", "slide_motion"]
 
@@ -31,26 +33,16 @@ class OlderView:
     """An older scan's free space for the slide test: its range image (a
     :class:`~flowslam.sceneflow.refinement.visibility.RangeImage`), ``T_old_prev`` (4,4: scan
     k-1's sensor frame into the older scan's, from the frontend's own poses), how many scans
-    before scan k-1 it was taken (``scans_back`` >= 1), and the margins of its free-space test
-    (``margin_m``, ``relative_margin``; ``row_from_m``: beyond this range (m, horizontal, in
-    the older frame) each point's row of the window is asked, None: never), as the
-    slow-mover test asks it."""
+    before scan k-1 it was taken (``scans_back`` >= 1), and the motion-evidence config whose
+    free-space test it asks, as the slow-mover test does
+    (:func:`~flowslam.sceneflow.refinement.visibility.free_in_older`)."""
 
-    def __init__(self, image, T_old_prev: np.ndarray, scans_back: int, margin_m: float, relative_margin: float,
-                 row_from_m: float | None = None):
-        self.image, self.T_old_prev, self.scans_back = image, T_old_prev, int(scans_back)
-        self.margin_m, self.relative_margin, self.row_from_m = margin_m, relative_margin, row_from_m
+    def __init__(self, image, T_old_prev: np.ndarray, scans_back: int, evidence: MotionEvidenceConfig):
+        self.image, self.T_old_prev, self.scans_back, self.evidence = image, T_old_prev, int(scans_back), evidence
 
     def free(self, points: np.ndarray) -> np.ndarray:
-        """(N,) bool: the older scan saw through ``points`` (frame k-1, m): every return in
-        the window around each one's direction lies clearly beyond it."""
-        x = transform_points(self.T_old_prev, points)
-        free = self.image.sees_beyond(x, margin_m=self.margin_m, relative_margin=self.relative_margin)
-        if self.row_from_m is not None:
-            far = np.flatnonzero(np.hypot(x[:, 0], x[:, 1]) >= self.row_from_m)
-            free[far] = self.image.sees_beyond(x[far], row=True, margin_m=self.margin_m,
-                                               relative_margin=self.relative_margin)
-        return free
+        """(N,) bool: the older scan saw through ``points`` (frame k-1, m)."""
+        return free_in_older(self.image, transform_points(self.T_old_prev, points), self.evidence)
 
 
 def slide_motion(p: np.ndarray, axis: np.ndarray, T_ego: np.ndarray, older: OlderView, fits, c) -> np.ndarray | None:
@@ -59,9 +51,9 @@ def slide_motion(p: np.ndarray, axis: np.ndarray, T_ego: np.ndarray, older: Olde
 
     ``p`` (M,3): the object's points clear of the ground (frame k-1); ``axis``: its unit
     principal horizontal axis (frame k-1); ``fits(T)``: (fitness, inlier RMSE (m)) of the
-    object under the motion T against scan k; ``c``: the objects config (``slide_free_share``, ``slide_max_free_share``,
-    ``slide_step_m``, ``slide_max_step_m``, ``min_seen_through``, ``min_fitness``,
-    ``max_rmse_m``, ``static_preference``).
+    object under the motion T against scan k; ``c``: the objects config
+    (``slide_free_share``, ``slide_max_free_share``, ``slide_step_m``, ``slide_max_step_m``,
+    ``min_seen_through``, ``min_fitness``, ``max_rmse_m``, ``static_preference``).
 
     Runs only when the older scan saw through at least ``slide_free_share`` of ``p`` (and
     ``min_seen_through`` points) where they are now. A displacement d per scan (multiples

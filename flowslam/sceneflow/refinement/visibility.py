@@ -41,7 +41,8 @@ from flowslam.sceneflow.refinement.clusters import (
     in_bounds,
 )
 
-__all__ = ["RangeImage", "baseline_window_margins", "spherical", "geometric_movers", "hidden_points", "slow_movers"]
+__all__ = ["RangeImage", "baseline_window_margins", "free_in_older", "spherical", "geometric_movers", "hidden_points",
+           "slow_movers"]
 
 
 
@@ -288,11 +289,7 @@ def slow_movers(
         free = old_image.sees_beyond(x, own_bin=True, margin_m=c.baseline_margin_m,
                                      relative_margin=c.baseline_relative_margin)
     else:
-        margin, relative = baseline_window_margins(c)
-        free = old_image.sees_beyond(x, margin_m=margin, relative_margin=relative)
-        if c.baseline_row_from_m is not None:  # far off, each point's row of the window
-            far = np.flatnonzero(np.hypot(x[:, 0], x[:, 1]) >= c.baseline_row_from_m)
-            free[far] = old_image.sees_beyond(x[far], row=True, margin_m=margin, relative_margin=relative)
+        free = free_in_older(old_image, x, c)
     if c.baseline_vacated and source_image is not None:
         margin, relative = _vacated_margins(x, c)
         front, where = old_image.in_front(x, margin, relative)
@@ -303,6 +300,19 @@ def slow_movers(
             free[ask] = source_image.sees_beyond(transform_points(inv(T_old_source), where[ask]),
                                                  margin_m=_pick(margin, ask), relative_margin=_pick(relative, ask))
     return _compact_clusters(source, near[free], c)
+
+
+def free_in_older(old_image: RangeImage, x: np.ndarray, c: MotionEvidenceConfig) -> np.ndarray:
+    """(N,) bool: the older scan (``old_image``) saw through the points ``x`` (N,3, its sensor
+    frame, m): the seen-through test's window with :func:`baseline_window_margins`, and beyond
+    ``baseline_row_from_m`` (horizontal range) each point's row of the window -- the free-space
+    test of :func:`slow_movers` (without ``baseline_own_bin``)."""
+    margin, relative = baseline_window_margins(c)
+    free = old_image.sees_beyond(x, margin_m=margin, relative_margin=relative)
+    if c.baseline_row_from_m is not None:  # far off, each point's row of the window
+        far = np.flatnonzero(np.hypot(x[:, 0], x[:, 1]) >= c.baseline_row_from_m)
+        free[far] = old_image.sees_beyond(x[far], row=True, margin_m=margin, relative_margin=relative)
+    return free
 
 
 def hidden_points(source: np.ndarray, T_old_source: np.ndarray, old_image: RangeImage,
