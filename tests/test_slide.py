@@ -1,7 +1,8 @@
 """The slide test: a car driving along its own side, told from a parked one by an older scan.
 
-The scene of ``test_far_crossing``: a car at 37 m whose long side faces the sensor, a wall
-15 m behind it, the ground; the ego drives forward 0.8 m per scan. The car drives along y
+The scene of ``test_far_crossing``: a car 37 m ahead of the older scan's sensor (31.4 m at
+scan k-1) whose long side faces the sensor, a wall 15 m behind it, the ground; the ego drives
+forward 0.8 m per scan. The car drives along y
 (its long axis) ``step`` metres per scan. The older scan is the one 7 scans before scan k-1.
 """
 
