@@ -47,7 +47,8 @@ def _slide(step: float, hidden_below_y: float | None = None, **options):
     prev, car, target, T_ego, view = _scene(step, hidden_below_y)
     p = prev[car]
     surface = ScanSurface(target)
-    T = slide_motion(p, _principal_axis(p), T_ego, view, lambda M: _score(p, M, surface, c), c)
+    fits = lambda M: _score(p, M, surface, c)  # noqa: E731
+    T = slide_motion(p, _principal_axis(p), T_ego, view, fits, fits(T_ego)[0], c)
     return None if T is None else T_ego[:3, :3].T @ (T[:3, 3] - T_ego[:3, 3])
 
 

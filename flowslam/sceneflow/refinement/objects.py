@@ -1164,7 +1164,7 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
             record["unobservable_motions"] = len(motions) - len(kept)
         motions = kept
     if not motions and older is not None and c.slide_free_share > 0:
-        slid = _slid(p, solid, T_ego, older, surface, c)
+        slid = _slid(p, solid, ego_plane, T_ego, older, surface, c)
         if slid is not None:
             motions.append(slid)
             record.update(accepted=True, slid=True)
@@ -1178,10 +1178,11 @@ def _refine_object(p: np.ndarray, flow: np.ndarray, sub: np.ndarray, seen: np.nd
     return record
 
 
-def _slid(p: np.ndarray, solid: np.ndarray | None, T_ego: np.ndarray, older: OlderView, surface: ScanSurface,
-          c: ObjectRefinementConfig) -> np.ndarray | None:
+def _slid(p: np.ndarray, solid: np.ndarray | None, ego_plane: np.ndarray, T_ego: np.ndarray, older: OlderView,
+          surface: ScanSurface, c: ObjectRefinementConfig) -> np.ndarray | None:
     """``slide_free_share``: the slide motion (:func:`~flowslam.sceneflow.refinement.slide.slide_motion`)
-    of an object (points ``p``, frame k-1; ``solid``: those clear of the ground, None: all)
+    of an object (points ``p``, frame k-1; ``solid``: those clear of the ground, None: all;
+    ``ego_plane``: the :func:`_plane_distances` of their ego landings, the object's static score)
     wider than ``PERSON_MAX_EXTENT_M`` and at least ``slide_min_range_m`` away, along the
     principal axis of its solid points, scored on scan k by :func:`_score`; None without one."""
     body = p if solid is None else p[solid]
@@ -1189,7 +1190,9 @@ def _slid(p: np.ndarray, solid: np.ndarray | None, T_ego: np.ndarray, older: Old
         return None
     if np.hypot(*body[:, :2].mean(axis=0)) < c.slide_min_range_m:
         return None
-    return slide_motion(body, _principal_axis(body), T_ego, older, lambda T: _score(body, T, surface, c), c)
+    static_fitness = _fit(ego_plane if solid is None else ego_plane[solid], c)[0]
+    return slide_motion(body, _principal_axis(body), T_ego, older, lambda T: _score(body, T, surface, c),
+                        static_fitness, c)
 
 
 def _slow_and_needless(p: np.ndarray, ego: np.ndarray, ego_plane: np.ndarray, whole: np.ndarray,

@@ -45,13 +45,15 @@ class OlderView:
         return free_in_older(self.image, transform_points(self.T_old_prev, points), self.evidence)
 
 
-def slide_motion(p: np.ndarray, axis: np.ndarray, T_ego: np.ndarray, older: OlderView, fits, c) -> np.ndarray | None:
+def slide_motion(p: np.ndarray, axis: np.ndarray, T_ego: np.ndarray, older: OlderView, fits, static_fitness: float,
+                 c) -> np.ndarray | None:
     """The slowest slide of an object that the older scan and scan k both allow, as a motion
     ``T_{k,k-1}`` (4,4), or None.
 
     ``p`` (M,3): the object's points clear of the ground (frame k-1); ``axis``: its unit
     principal horizontal axis (frame k-1); ``fits(T)``: (fitness, inlier RMSE (m)) of the
-    object under the motion T against scan k; ``c``: the objects config
+    object under the motion T against scan k; ``static_fitness``: its fitness under the ego
+    motion ``T_ego`` (``fits(T_ego)[0]``, as the caller already knows it); ``c``: the objects config
     (``slide_free_share``, ``slide_max_free_share``, ``slide_step_m``, ``slide_max_step_m``,
     ``min_seen_through``, ``min_fitness``, ``max_rmse_m``, ``static_preference``).
 
@@ -61,14 +63,14 @@ def slide_motion(p: np.ndarray, axis: np.ndarray, T_ego: np.ndarray, older: Olde
     smaller first; at equal size the one with fewer free points first) is kept when at most
     ``slide_max_free_share`` of ``p`` moved back by ``scans_back`` d lie in the older scan's
     free space, and scan k fits the object moved by d (then by the ego motion) with at least
-    ``min_fitness``, within ``static_preference`` of the fitness of the ego motion
-    (``T_ego``), and an RMSE of at most ``max_rmse_m``."""
+    ``min_fitness``, within ``static_preference`` of ``static_fitness``, and an RMSE of at most
+    ``max_rmse_m``."""
     if len(p) == 0:
         return None
     free_now = int(np.count_nonzero(older.free(p)))
     if free_now < max(c.min_seen_through, c.slide_free_share * len(p)):
         return None
-    n, static_fitness = older.scans_back, fits(T_ego)[0]
+    n = older.scans_back
     steps = np.arange(1, int(np.floor(c.slide_max_step_m / c.slide_step_m + 1e-9)) + 1) * c.slide_step_m
     for d in steps:
         tries = []
