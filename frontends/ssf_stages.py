@@ -487,6 +487,9 @@ class ObjectsStage:
         self._surface: tuple = (None, None)
         """(frame index, :class:`ScanSurface`) of the last scan k: scan k-1 of the next pair,
         whose arrivals ask it."""
+        self._surfaces: dict[int, tuple] = {}
+        """(:class:`ScanSurface`, own ``T_world_sensor``) of the last scans by frame index, kept
+        from when each was scan k, for ``occupied_release_share``."""
 
     def run(self, state: PairState) -> None:
         from flowslam.sceneflow.refinement.objects import (
@@ -539,6 +542,7 @@ class ObjectsStage:
                                                          SEEN_EVIDENCE_SHARE)
             span_s = self._scans_back(state, evidence.baseline_scans) * scan_interval(state.dt)
             released = release_tracks(prev, objects, asked, geometric, T_ego, older, span_s, c)
+        occupied = self._release_occupied(state, objects, surface, above)
         # instances: accepted objects and the unregistered movers' (the rest: -1)
         kept = np.array([o["accepted"] or o.get("unregistered", False) for o in objects.objects] + [False])
         state.flow, state.static = objects.flow, ~objects.dynamic
@@ -547,6 +551,29 @@ class ObjectsStage:
         state.stats.update(objects.stats, tracked_candidates=int(tracked.sum()), tracked_held=held)
         if released is not None:
             state.stats["tracked_released"] = released
+        if occupied is not None:
+            state.stats["occupied_released"] = occupied
+
+    def _release_occupied(self, state: PairState, objects, surface, above) -> int | None:
+        """:func:`~flowslam.sceneflow.refinement.occupancy.release_occupied` of the pair's
+        ``objects`` against the kept surfaces of the scans ``occupied_from_scans`` to
+        ``occupied_to_scans`` before scan k-1 (placed with the frontend's own poses), after
+        keeping scan k's ``surface``; None when the option is off."""
+        from flowslam.sceneflow.refinement.objects import PERSON_MAX_EXTENT_M, scan_interval
+        from flowslam.sceneflow.refinement.occupancy import OlderSurface, release_occupied
+
+        c = self.options
+        if c.occupied_release_share <= 0:
+            return None
+        k1 = state.prev.index
+        self._surfaces = {i: v for i, v in self._surfaces.items() if i >= k1 - c.occupied_to_scans}
+        self._surfaces[state.frame.index] = (surface, state.T_world_measured)
+        T_world_prev = state.history_poses[-1]
+        olders = [OlderSurface(old, geometry.inv(T_world_old) @ T_world_prev, back)
+                  for back in range(c.occupied_from_scans, c.occupied_to_scans + 1)
+                  for old, T_world_old in [self._surfaces.get(k1 - back, (None, None))] if old is not None]
+        return release_occupied(state.prev.points, objects, above, state.estimate.T_curr_prev,
+                                scan_interval(state.dt), olders, PERSON_MAX_EXTENT_M, c)
 
     def _slide_view(self, state: PairState, older):
         """The :class:`~flowslam.sceneflow.refinement.slide.OlderView` of ``older`` (the

@@ -608,7 +608,26 @@ class ObjectRefinementConfig(StrictModel):
     """See ``release_seen_share``."""
     release_min_shift_m: float = Field(0.4, ge=0)
     """See ``release_seen_share`` (m): the instance's speed times the time since the older
-    scan; at a run's start that scan is only a few scans back."""
+    scan; at a run's start that scan is only a few scans back. Also for
+    ``occupied_release_share`` (since the newest of its older scans)."""
+    occupied_release_share: float = Field(0.0, ge=0, le=1)
+    """A moving instance wider than a person (its moving points' BEV diagonal over
+    ``PERSON_MAX_EXTENT_M``) becomes static when at least this share of its moving points
+    clear of the ground lie within ``occupied_radius_m`` of a point of one of the scans
+    ``occupied_from_scans`` to ``occupied_to_scans`` before scan k-1 (placed with the
+    frontend's own poses), while its motion would have moved it ``release_min_shift_m`` since
+    the newest of them (:func:`flowslam.sceneflow.refinement.occupancy.release_occupied`).
+    Unlike ``release_seen_share`` it asks every moving instance, whatever flagged it, and
+    several older scans' points instead of one scan's range image: a 16-beam sensor's rings
+    cross a parked car at other heights from each viewpoint, so one pair's ICP and free-space
+    tests can call it moving, while the older scans together saw it where it stands.
+    0: off."""
+    occupied_from_scans: int = Field(4, ge=1)
+    """See ``occupied_release_share``: the newest older scan asked (scans before scan k-1)."""
+    occupied_to_scans: int = Field(8, ge=1)
+    """See ``occupied_release_share``: the oldest older scan asked."""
+    occupied_radius_m: float = Field(0.2, gt=0)
+    """See ``occupied_release_share`` (m)."""
     leftover_share: float = Field(0.15, ge=0, le=1)
     """Share of an object's points left unexplained that ``leftover_motion`` registers."""
     own_surface_m: float = Field(0.3, ge=0)
