@@ -488,8 +488,8 @@ class ObjectsStage:
         """(frame index, :class:`ScanSurface`) of the last scan k: scan k-1 of the next pair,
         whose arrivals ask it."""
         self._surfaces: dict[int, tuple] = {}
-        """(:class:`ScanSurface`, own ``T_world_sensor``) of the last scans by frame index, kept
-        from when each was scan k, for ``occupied_release_share``."""
+        """(:class:`ScanSurface` for nearest-point queries, own ``T_world_sensor``) of the last
+        scans by frame index, kept from when each was scan k, for ``occupied_release_share``."""
 
     def run(self, state: PairState) -> None:
         from flowslam.sceneflow.refinement.objects import (
@@ -567,7 +567,7 @@ class ObjectsStage:
             return None
         k1 = state.prev.index
         self._surfaces = {i: v for i, v in self._surfaces.items() if i >= k1 - c.occupied_to_scans}
-        self._surfaces[state.frame.index] = (surface, state.T_world_measured)
+        self._surfaces[state.frame.index] = (surface.nearest_only(), state.T_world_measured)
         T_world_prev = state.history_poses[-1]
         olders = [OlderSurface(old, geometry.inv(T_world_old) @ T_world_prev, back)
                   for back in range(c.occupied_from_scans, c.occupied_to_scans + 1)

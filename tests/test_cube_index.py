@@ -81,6 +81,14 @@ def test_scan_surface_nearest_and_normals_equal_the_kd_tree_paths(kitti_scan):
     np.testing.assert_array_equal(kitti_scan.normals(idx, 1.0), plane_normals(tree, points, idx, 1.0))
 
 
+def test_a_nearest_only_surface_shares_the_index_and_answers_the_same(kitti_scan):
+    light = kitti_scan.nearest_only()
+    assert light.points is kitti_scan.points and light._cube_index() is kitti_scan._cube_index()
+    x = _queries(kitti_scan.points, 3000, seed=9)
+    for expected, got in zip(kitti_scan.nearest(x, 0.2), light.nearest(x, 0.2)):
+        np.testing.assert_array_equal(got, expected)
+
+
 def test_cube_index_refuses_a_radius_that_is_not_positive():
     index = CubeIndex.build(np.zeros((3, 3)), 0.3)
     for radius in (0.0, -1.0, float("nan")):

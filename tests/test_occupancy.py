@@ -106,7 +106,7 @@ def test_off_or_without_older_scans_nothing_is_released():
     car = _car(0.0)
     result = _result(car, np.ones(len(car), bool), [0.5, 0.0, 0.0])
     olders = _olders([_car(0.0, step=0.2)])
-    c = ObjectRefinementConfig()  # the default: off
+    c = ObjectRefinementConfig(occupied_release_share=0.0)  # off
     assert release_occupied(car, result, None, np.eye(4), DT, olders, PERSON_MAX_EXTENT_M, c) == 0
     assert _release(car, result, []) == 0
     assert result.dynamic.all()

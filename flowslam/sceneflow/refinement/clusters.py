@@ -274,6 +274,14 @@ class ScanSurface:
         dist, nb = index.query(x, k, radius)
         return (dist[:, 0], nb[:, 0]) if k == 1 else (dist, nb)
 
+    def nearest_only(self) -> ScanSurface:
+        """A surface over the same points for :meth:`nearest` and :meth:`query` alone, sharing
+        this one's cube index (built now if not yet): what a scan kept for later pairs needs,
+        without its cached normals and BEV buckets."""
+        light = ScanSurface(self.points, bucket_m=self.bucket_m, cube_m=self.cube_m)
+        light._cubes, light._tree = self._cube_index(), self._tree
+        return light
+
     def nearest(self, x: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
         """(distance (M,), index (M,)) of the point nearest each query ``x`` (M,3) closer than
         ``radius`` (m); inf and ``len(self)`` where none is (:meth:`query` with k = 1)."""
