@@ -77,6 +77,7 @@ def test_a_parked_car_the_older_scans_saw_in_place_is_released():
     assert np.allclose(result.flow, 0.0)  # the ego-rigid flow of a sensor standing still
     assert result.objects[0]["released"] and not result.objects[0]["accepted"]
     assert result.objects[0]["occupied_share"] == pytest.approx(1.0)
+    assert result.objects[0]["moved_share"] < 0.6  # 2-2.5 m back it would have stood on its own rear half only
 
 
 def test_a_car_the_older_scans_saw_elsewhere_keeps_moving():
@@ -89,6 +90,18 @@ def test_a_car_the_older_scans_saw_elsewhere_keeps_moving():
     assert np.allclose(result.flow, [0.5, 0.0, 0.0])
 
 
+def test_a_bus_driving_along_its_own_side_keeps_moving():
+    bus = _car(0.0, length=12.0)
+    result = _result(bus, np.ones(len(bus), bool), [0.5, 0.0, 0.0])
+    # 4 and 5 scans back it stood 2.0 and 2.5 m further back: its old side covers 10 of its 12 m now ...
+    olders = _olders([_car(-2.0, length=12.0, step=0.2), _car(-2.5, length=12.0, step=0.2)])
+    assert occupied_share(bus, olders, 0.2) >= 0.8
+    # ... and all of it moved back by its motion, so the older scans do not prefer its standing still
+    assert occupied_share(bus, olders, 0.2, step=np.array([0.5, 0.0, 0.0])) > 0.99
+    assert _release(bus, result, olders) == 0
+    assert result.dynamic.all()
+
+
 def test_walkers_and_slow_instances_are_not_asked():
     walker = _car(0.0, length=0.5)  # 0.5 m wide: a person
     result = _result(walker, np.ones(len(walker), bool), [0.1, 0.0, 0.0])
@@ -99,7 +112,10 @@ def test_walkers_and_slow_instances_are_not_asked():
     slow = _result(car, np.ones(len(car), bool), [0.05, 0.0, 0.0])
     assert _release(car, slow, _olders([_car(0.0, step=0.2)])) == 0
     assert slow.dynamic.all()
-    assert _release(car, slow, _olders([_car(0.0, step=0.2)]), release_min_shift_m=0.1) == len(car)
+    # nor can the older scan tell it from a body standing still: 0.2 m back is within the radius too
+    assert _release(car, slow, _olders([_car(0.0, step=0.2)]), release_min_shift_m=0.1) == 0
+    assert _release(car, slow, _olders([_car(0.0, step=0.2)]), release_min_shift_m=0.1,
+                    occupied_motion_margin=0.0) == len(car)
 
 
 def test_off_or_without_older_scans_nothing_is_released():

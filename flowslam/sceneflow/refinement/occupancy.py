@@ -9,8 +9,10 @@ their rings crossed it at many heights. Where nearly all the points of an instan
 of the ground) lie within a few centimetres of points those older scans saw, placed with the
 frontend's own poses, something stood there then. A body that moves as fast as its flow
 says would have been elsewhere: at least ``release_min_shift_m`` away when the newest of
-those scans was taken. Walker-sized instances are not asked: in a crowd one walker steps
-where another stood.
+those scans was taken. The older scans must also prefer that place to the one the motion
+gives: a vehicle driving along its own side stands on the line where they saw its side, and
+so does its place moved back by its motion, where they saw it too. Walker-sized instances
+are not asked: in a crowd one walker steps where another stood.
 
 Frames: the instance points in sensor frame k-1 (m); each older scan's surface in its own
 sensor frame, with ``T_old_prev`` mapping frame k-1 into it; seconds.
@@ -40,15 +42,19 @@ class OlderSurface:
     scans_back: int
 
 
-def occupied_share(points: np.ndarray, olders: list[OlderSurface], radius_m: float) -> float:
+def occupied_share(points: np.ndarray, olders: list[OlderSurface], radius_m: float,
+                   step: np.ndarray | None = None) -> float:
     """Share of ``points`` ((M,3), sensor frame k-1, M >= 1) that lie within ``radius_m`` (m)
-    of a point of at least one of the ``olders`` scans."""
+    of a point of at least one of the ``olders`` scans; with ``step`` (3,), a displacement per
+    scan (frame k-1, m), each older scan is asked about the points moved back by ``step`` times
+    its ``scans_back``: where a body moving by ``step`` stood then."""
     there = np.zeros(len(points), dtype=bool)
     for old in olders:
         todo = np.flatnonzero(~there)
         if todo.size == 0:
             break
-        dist, _ = old.surface.nearest(transform_points(old.T_old_prev, points[todo]), radius_m)
+        then = points[todo] if step is None else points[todo] - old.scans_back * np.asarray(step)
+        dist, _ = old.surface.nearest(transform_points(old.T_old_prev, then), radius_m)
         there[todo[np.isfinite(dist)]] = True
     return float(there.mean())
 
@@ -64,8 +70,11 @@ def release_occupied(source: np.ndarray, result, solid: np.ndarray | None, T_ego
     ``interval``: the scan interval (s). An instance is asked when its moving points are
     wider than ``person_max_extent_m`` (BEV diagonal, m), at least 5 of them are clear of the
     ground, and their mean horizontal departure from the ego motion's flow would have moved
-    them ``release_min_shift_m`` since the newest of the ``olders``. Returns the number of
-    points released."""
+    them ``release_min_shift_m`` since the newest of the ``olders``; it is released when at
+    least ``occupied_release_share`` of those points are :func:`occupied_share` in place, and
+    that share exceeds the share moved back by that departure per scan (``moved_share`` in
+    its record) by at least ``occupied_motion_margin``. Returns the number of points
+    released."""
     if c.occupied_release_share <= 0 or not olders:
         return 0
     since_s = min(old.scans_back for old in olders) * interval
@@ -75,8 +84,9 @@ def release_occupied(source: np.ndarray, result, solid: np.ndarray | None, T_ego
         moving = idx[result.dynamic[idx]]
         if np.hypot(*np.ptp(source[moving, :2], axis=0)) <= person_max_extent_m:
             continue
-        departure = result.flow[moving, :2] - rigid_flow(T_ego, source[moving])[:, :2]
-        if float(np.linalg.norm(departure.mean(axis=0))) / interval * since_s < c.release_min_shift_m:
+        departure = np.zeros(3)  # per scan, frame k
+        departure[:2] = (result.flow[moving, :2] - rigid_flow(T_ego, source[moving])[:, :2]).mean(axis=0)
+        if float(np.linalg.norm(departure)) / interval * since_s < c.release_min_shift_m:
             continue
         body = moving if solid is None else moving[solid[moving]]
         if len(body) < 5:
@@ -84,7 +94,10 @@ def release_occupied(source: np.ndarray, result, solid: np.ndarray | None, T_ego
         share = occupied_share(source[body], olders, c.occupied_radius_m)
         if share < c.occupied_release_share:
             continue
+        moved = occupied_share(source[body], olders, c.occupied_radius_m, T_ego[:3, :3].T @ departure)
+        if share < moved + c.occupied_motion_margin:
+            continue
         result.flow[idx], result.dynamic[idx], result.instance[idx] = rigid_flow(T_ego, source[idx]), False, -1
-        result.objects[j].update(accepted=False, released=True, occupied_share=share)
+        result.objects[j].update(accepted=False, released=True, occupied_share=share, moved_share=moved)
         released += len(idx)
     return released
