@@ -616,7 +616,8 @@ class ObjectRefinementConfig(StrictModel):
     clear of the ground lie within ``occupied_radius_m`` of a point of one of the scans
     ``occupied_from_scans`` to ``occupied_to_scans`` before scan k-1 (placed with the
     frontend's own poses), while its motion would have moved it ``release_min_shift_m`` since
-    the newest of them (:func:`flowslam.sceneflow.refinement.occupancy.release_occupied`).
+    the newest of them, and the older scans prefer that place to the one its own motion gives
+    (``occupied_motion_margin``; :func:`flowslam.sceneflow.refinement.occupancy.release_occupied`).
     Unlike ``release_seen_share`` it asks every moving instance, whatever flagged it, and
     several older scans' points instead of one scan's range image: a 16-beam sensor's rings
     cross a parked car at other heights from each viewpoint, so one pair's ICP and free-space
@@ -637,11 +638,11 @@ class ObjectRefinementConfig(StrictModel):
     """See ``occupied_release_share``: the share of those points in place must exceed the
     share the older scans saw where the instance's own motion puts them then (moved back by
     its mean horizontal departure per scan) by at least this: a vehicle driving along its own
-    side is seen in place by its own old side (fresh hdl64 `dt` 1067: five cars at 3.5-5.4
+    side is seen in place by its own old side (fresh hdl64 ``dt`` 1067: five cars at 3.5-5.4
     m/s released without it, all seen 0.97-1.0 at their moved-back places). Adopted by rule
-    28, written before its fresh seeds (stop 74): fresh `dt` 1079-1081 recall identical,
-    `rush-hour` 1088-1090 recall +0.0005 / +0.0006 / 0, vlp16 `static` 1087 0.268 -> 0.284 %
-    (1084 identical); tuning `dt` 1067 recall 0.7863 -> 0.7889."""
+    28, written before its fresh seeds (stop 74): fresh ``dt`` 1079-1081 recall identical,
+    ``rush-hour`` 1088-1090 recall +0.0005 / +0.0006 / 0, vlp16 ``static`` 1087 0.268 -> 0.284 %
+    (1084 identical); tuning ``dt`` 1067 recall 0.7863 -> 0.7889."""
     leftover_share: float = Field(0.15, ge=0, le=1)
     """Share of an object's points left unexplained that ``leftover_motion`` registers."""
     own_surface_m: float = Field(0.3, ge=0)
