@@ -6,8 +6,8 @@ motion's or better, and the free-space tests fire at its edges, where a ring tha
 body from scan k-1's viewpoint passes over it from scan k's. Several older scans together
 sample the body far more densely than any one of them: the ego moved between them, so
 their rings crossed it at many heights. Where nearly all the points of an instance (clear
-of the ground) lie within a few centimetres of points those older scans saw, placed with the
-frontend's own poses, something stood there then. A body that moves as fast as its flow
+of the ground) lie within ``occupied_radius_m`` (0.2 m) of points those older scans saw,
+placed with the frontend's own poses, something stood there then. A body that moves as fast as its flow
 says would have been elsewhere: at least ``release_min_shift_m`` away when the newest of
 those scans was taken. The older scans must also prefer that place to the one the motion
 gives: a vehicle driving along its own side stands on the line where they saw its side, and
