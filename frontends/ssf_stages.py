@@ -559,7 +559,7 @@ class ObjectsStage:
         ``objects`` against the kept surfaces of the scans ``occupied_from_scans`` to
         ``occupied_to_scans`` before scan k-1 (placed with the frontend's own poses), after
         keeping scan k's ``surface``; None when the option is off."""
-        from flowslam.sceneflow.refinement.objects import PERSON_MAX_EXTENT_M, scan_interval
+        from flowslam.sceneflow.refinement.objects import scan_interval
         from flowslam.sceneflow.refinement.occupancy import OlderSurface, release_occupied
 
         c = self.options
@@ -573,7 +573,7 @@ class ObjectsStage:
                   for back in range(c.occupied_from_scans, c.occupied_to_scans + 1)
                   for old, T_world_old in [self._surfaces.get(k1 - back, (None, None))] if old is not None]
         return release_occupied(state.prev.points, objects, above, state.estimate.T_curr_prev,
-                                scan_interval(state.dt), olders, PERSON_MAX_EXTENT_M, c)
+                                scan_interval(state.dt), olders, c)
 
     def _slide_view(self, state: PairState, older):
         """The :class:`~flowslam.sceneflow.refinement.slide.OlderView` of ``older`` (the

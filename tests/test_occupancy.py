@@ -9,7 +9,7 @@ import pytest
 
 from flowslam.config import ObjectRefinementConfig
 from flowslam.sceneflow.refinement.clusters import ScanSurface
-from flowslam.sceneflow.refinement.objects import PERSON_MAX_EXTENT_M, ObjectRefinement
+from flowslam.sceneflow.refinement.objects import ObjectRefinement
 from flowslam.sceneflow.refinement.occupancy import OlderSurface, occupied_share, release_occupied
 
 DT = 0.1
@@ -50,7 +50,7 @@ def _result(source: np.ndarray, moving: np.ndarray, flow: np.ndarray) -> ObjectR
 
 def _release(source, result, olders, **options) -> int:
     c = ObjectRefinementConfig(occupied_release_share=0.8, **options)
-    return release_occupied(source, result, None, np.eye(4), DT, olders, PERSON_MAX_EXTENT_M, c)
+    return release_occupied(source, result, None, np.eye(4), DT, olders, c)
 
 
 def test_occupied_share_counts_points_near_any_older_scan():
@@ -123,7 +123,7 @@ def test_off_or_without_older_scans_nothing_is_released():
     result = _result(car, np.ones(len(car), bool), [0.5, 0.0, 0.0])
     olders = _olders([_car(0.0, step=0.2)])
     c = ObjectRefinementConfig(occupied_release_share=0.0)  # off
-    assert release_occupied(car, result, None, np.eye(4), DT, olders, PERSON_MAX_EXTENT_M, c) == 0
+    assert release_occupied(car, result, None, np.eye(4), DT, olders, c) == 0
     assert _release(car, result, []) == 0
     assert result.dynamic.all()
 
@@ -133,11 +133,10 @@ def test_the_objects_stage_asks_the_surfaces_it_kept_placed_with_its_own_poses()
     scans ``occupied_from_scans`` to ``occupied_to_scans`` before scan k-1: the ego drives 1 m
     per scan past a parked car that each pair's objects call moving; from the pair whose scan
     k-1 has a kept scan 4 back, the car is released, and at most the scans needed are kept."""
-    from flowslam import geometry
     from flowslam.config import SsfConfig
-    from flowslam.flow_odometry import FlowPoseEstimate
     from flowslam.frame import Frame
-    from frontends.ssf_stages import ObjectsStage, PairState
+    from frontends.ssf_stages import ObjectsStage
+    from test_slow_movers import _pair
 
     world = np.concatenate([_car(5.0), _car(-20.0, y0=-6.0, length=40.0, step=0.2)])  # the car, a wall
     poses = [_translation(float(i)) for i in range(12)]
@@ -147,11 +146,7 @@ def test_the_objects_stage_asks_the_surfaces_it_kept_placed_with_its_own_poses()
     stage = ObjectsStage(config)
     released = []
     for k in range(1, 12):
-        state = PairState(frames[k - 1], frames[k], frames[max(k - 4, 0):k], poses[max(k - 4, 0):k],
-                          T_world_guess=poses[k])
-        T_prev_curr = _translation(1.0)
-        state.estimate = FlowPoseEstimate(T_prev_curr, np.eye(6), geometry.inv(T_prev_curr),
-                                          np.ones(len(world), dtype=bool), False, None)
+        state = _pair(frames, poses, k, min(k, 4))  # measured at the true pose: 1 m per scan
         source = state.prev.points
         is_car = np.arange(len(source)) < len(_car(5.0))
         ego_flow = -np.array([1.0, 0.0, 0.0])

@@ -27,6 +27,7 @@ import numpy as np
 from flowslam.config.ssf import ObjectRefinementConfig
 from flowslam.geometry import rigid_flow, transform_points
 from flowslam.sceneflow.refinement.clusters import ScanSurface
+from flowslam.sceneflow.refinement.objects import PERSON_MAX_EXTENT_M
 
 __all__ = ["OlderSurface", "occupied_share", "release_occupied"]
 
@@ -60,7 +61,7 @@ def occupied_share(points: np.ndarray, olders: list[OlderSurface], radius_m: flo
 
 
 def release_occupied(source: np.ndarray, result, solid: np.ndarray | None, T_ego: np.ndarray, interval: float,
-                     olders: list[OlderSurface], person_max_extent_m: float, c: ObjectRefinementConfig) -> int:
+                     olders: list[OlderSurface], c: ObjectRefinementConfig) -> int:
     """Moving instances that the ``olders`` scans saw in place become static
     (``occupied_release_share`` in the config: the conditions). ``source``: scan k-1 (frame
     k-1); ``result``: its :class:`~flowslam.sceneflow.refinement.objects.ObjectRefinement`,
@@ -68,7 +69,7 @@ def release_occupied(source: np.ndarray, result, solid: np.ndarray | None, T_ego
     ``T_{k,k-1}``, no instance, and its record ``accepted: False``, ``released: True`` and
     ``occupied_share``); ``solid`` (N,) bool: the points clear of the ground (None: all);
     ``interval``: the scan interval (s). An instance is asked when its moving points are
-    wider than ``person_max_extent_m`` (BEV diagonal, m), at least 5 of them are clear of the
+    wider than ``PERSON_MAX_EXTENT_M`` (BEV diagonal, m), at least 5 of them are clear of the
     ground, and their mean horizontal departure from the ego motion's flow would have moved
     them ``release_min_shift_m`` since the newest of the ``olders``; it is released when at
     least ``occupied_release_share`` of those points are :func:`occupied_share` in place, and
@@ -82,7 +83,7 @@ def release_occupied(source: np.ndarray, result, solid: np.ndarray | None, T_ego
     for j in np.unique(result.instance[result.dynamic & (result.instance >= 0)]):
         idx = np.flatnonzero(result.instance == j)
         moving = idx[result.dynamic[idx]]
-        if np.hypot(*np.ptp(source[moving, :2], axis=0)) <= person_max_extent_m:
+        if np.hypot(*np.ptp(source[moving, :2], axis=0)) <= PERSON_MAX_EXTENT_M:
             continue
         departure = np.zeros(3)  # per scan, frame k
         departure[:2] = (result.flow[moving, :2] - rigid_flow(T_ego, source[moving])[:, :2]).mean(axis=0)
