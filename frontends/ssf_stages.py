@@ -566,8 +566,7 @@ class ObjectsStage:
         if c.occupied_release_share <= 0:
             return None
         k1 = state.prev.index
-        self._surfaces = {i: v for i, v in self._surfaces.items() if i >= k1 - c.occupied_to_scans}
-        self._surfaces[state.frame.index] = (surface.nearest_only(), state.T_world_measured)
+        self._surfaces = _keep_scan(self._surfaces, state, surface.nearest_only(), k1 - c.occupied_to_scans)
         T_world_prev = state.history_poses[-1]
         olders = [OlderSurface(old, geometry.inv(T_world_old) @ T_world_prev, back)
                   for back in range(c.occupied_from_scans, c.occupied_to_scans + 1)
@@ -591,8 +590,7 @@ class ObjectsStage:
         scans), dropping those no later pair reaches back to."""
         evidence = self.options.motion_evidence
         back = max(evidence.baseline_scans, evidence.long_baseline_scans)
-        self._images = {i: v for i, v in self._images.items() if i >= state.frame.index - back - 1}
-        self._images[state.frame.index] = (image, state.T_world_measured)
+        self._images = _keep_scan(self._images, state, image, state.frame.index - back - 1)
 
     def _slow_movers(self, state: PairState, ground, older, min_range_m: float = 0.0) -> np.ndarray:
         """:func:`~flowslam.sceneflow.refinement.visibility.slow_movers` of scan k-1 against
@@ -680,6 +678,14 @@ class ObjectsStage:
         if image is None:  # a scan this stage did not see as scan k (a run's first scans, a retry)
             image = RangeImage(old.points, self.options.motion_evidence)
         return image, state.history_poses[-1 - back]
+
+
+def _keep_scan(kept: dict[int, tuple], state: PairState, value, oldest: int) -> dict[int, tuple]:
+    """``kept`` (frame index -> (value, its ``T_world_sensor``)) without the scans before
+    frame ``oldest``, plus scan k's ``value`` with scan k's own measured pose."""
+    kept = {i: v for i, v in kept.items() if i >= oldest}
+    kept[state.frame.index] = (value, state.T_world_measured)
+    return kept
 
 
 def _placed(state: PairState, old: tuple | None):

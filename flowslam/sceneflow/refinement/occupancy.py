@@ -27,7 +27,7 @@ import numpy as np
 from flowslam.config.ssf import ObjectRefinementConfig
 from flowslam.geometry import rigid_flow, transform_points
 from flowslam.sceneflow.refinement.clusters import ScanSurface
-from flowslam.sceneflow.refinement.objects import PERSON_MAX_EXTENT_M
+from flowslam.sceneflow.refinement.objects import PERSON_MAX_EXTENT_M, release_instance
 
 __all__ = ["OlderSurface", "occupied_share", "release_occupied"]
 
@@ -98,7 +98,5 @@ def release_occupied(source: np.ndarray, result, solid: np.ndarray | None, T_ego
         moved = occupied_share(source[body], olders, c.occupied_radius_m, T_ego[:3, :3].T @ departure)
         if share < moved + c.occupied_motion_margin:
             continue
-        result.flow[idx], result.dynamic[idx], result.instance[idx] = rigid_flow(T_ego, source[idx]), False, -1
-        result.objects[j].update(accepted=False, released=True, occupied_share=share, moved_share=moved)
-        released += len(idx)
+        released += release_instance(source, result, j, T_ego, occupied_share=share, moved_share=moved)
     return released
