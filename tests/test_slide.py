@@ -82,3 +82,30 @@ def test_a_slide_needs_its_share_of_points_in_the_older_scans_free_space():
     tried."""
     assert _slide(0.5, slide_free_share=1.0) is None
     assert _slide(0.5, slide_max_step_m=0.45) is None
+
+
+def test_a_slice_on_fewer_rings_than_slide_min_rings_does_not_slide():
+    """One ring's arc across the moving car (its points within 0.1 deg of one elevation, as a
+    sparse sensor sees a body 30 m off): the older scan's rings at other heights see through
+    such an arc on a parked body too, so it is not slid; the whole car is, and the same arc is
+    where one ring is enough (``slide_min_rings`` 1)."""
+    from flowslam.sceneflow.refinement.clusters import ring_count
+    from flowslam.sceneflow.refinement.objects import _plane_distances, _slid
+
+    prev, car, target, T_ego, view = _scene(0.5)
+    p = prev[car]
+    elevation = np.degrees(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])))
+    arc = p[np.abs(elevation - np.median(elevation)) < 0.05]
+    surface = ScanSurface(target)
+
+    def slid(points, **options):
+        c = ObjectRefinementConfig(**{"slide_free_share": 0.25, **options})
+        plane = _plane_distances(geometry.transform_points(T_ego, points), surface, c)
+        return _slid(points, None, plane, T_ego, view, surface, c)
+
+    c = ObjectRefinementConfig()
+    assert ring_count(arc, c.ring_gap_rad) < c.slide_min_rings <= ring_count(p, c.ring_gap_rad)
+    assert len(arc) >= c.min_points
+    assert slid(p) is not None
+    assert slid(arc) is None
+    assert slid(arc, slide_min_rings=1) is not None

@@ -180,6 +180,13 @@ class MotionEvidenceConfig(StrictModel):
     """Clusters with fewer points are dropped."""
     min_seen_through: int = Field(5, ge=1)
     """... and clusters with fewer seen-through points."""
+    min_points_far: int | None = Field(None, ge=1)
+    """Clusters whose points lie ``far_from_m`` or farther on average (horizontally) need only
+    this many instead of ``min_points``: a sensor's returns thin out with range (a truck at 40 m
+    on a 16-beam sensor: 8-14 points that an older scan sees through). None: ``min_points``
+    everywhere. See ``ObjectRefinementConfig.min_points_far``."""
+    far_from_m: float = Field(30.0, ge=0)
+    """... the range (m) from which ``min_points_far`` applies."""
     max_extent_m: float = Field(12.0, gt=0)
     """... and clusters whose BEV extent (diagonal) exceeds this (walls, not vehicles)."""
     baseline_scans: int = Field(7, ge=0)
@@ -321,6 +328,13 @@ class ObjectRefinementConfig(StrictModel):
     """BEV grid cell of the connected-component clustering (8-connected)."""
     min_points: int = Field(15, ge=3)
     """Clusters with fewer points are not registered."""
+    min_points_far: int | None = Field(None, ge=3)
+    """Candidate clusters whose points lie ``far_from_m`` or farther on average (horizontally)
+    are registered from this many geometric movers (``motion_evidence.min_points_far`` lets the
+    geometric tests' flags of such clusters through; the network's candidates alone still need
+    ``min_points``). None: ``min_points`` everywhere."""
+    far_from_m: float = Field(30.0, ge=0)
+    """... the range (m) from which ``min_points_far`` applies."""
     min_above_ground_points: int = Field(5, ge=0)
     """Clusters with fewer points than this higher than ``motion_evidence.ground_clearance_m``
     above the local ground are road, not objects: static, no ICP. A ring's arc on flat
@@ -895,6 +909,12 @@ class ObjectRefinementConfig(StrictModel):
     """... only objects whose centroid lies at least this far (m, horizontally): nearer, the
     older scan looked from metres away at another angle, and on a 16-beam sensor its rings
     passed over a parked car's roof (tuning `dt` 1039: a parked car at 4 m slid at 4 m/s)."""
+    slide_min_rings: int = Field(3, ge=1)
+    """... and only objects whose points clear of the ground lie on at least this many of the
+    sensor's rings (:func:`~flowslam.sceneflow.refinement.clusters.ring_count`, ``ring_gap_rad``):
+    one ring's arc across a fence or a parked car, from a 16-beam sensor 20 m away, is seen
+    through by an older scan's rings at other heights and slides (tuning vlp16 ``static`` 1072,
+    stop 75: 7 slides, every one on 1-3 rings, 0.350 -> 0.367 % of points dynamic)."""
     slide_max_free_share: float = Field(0.05, ge=0, le=1)
     """... the share of the object's points a slide may leave in the older scan's free space."""
     slide_step_m: float = Field(0.1, gt=0)

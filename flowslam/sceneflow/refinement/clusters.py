@@ -31,6 +31,7 @@ __all__ = [
     "bev_cell_ids",
     "bev_clusters",
     "bev_extent",
+    "cluster_minimum",
     "dense_grid_shape",
     "grid_occupancy",
     "grid_voxel_ids",
@@ -70,6 +71,19 @@ def bev_clusters(points: np.ndarray, cell: float) -> np.ndarray:
     grid[ids] = True
     labels, _ = ndimage.label(grid.reshape(shape), structure=np.ones((3, 3), dtype=bool))
     return labels.reshape(-1)[ids] - 1
+
+
+def cluster_minimum(xy: np.ndarray, labels: np.ndarray, counts: np.ndarray, min_points: int,
+                    min_points_far: int | None, far_from_m: float) -> np.ndarray:
+    """(len(counts),) the points each BEV cluster needs: ``min_points``, or ``min_points_far``
+    (None: never) where the mean horizontal range of its points ``xy`` ((N,2), sensor frame, m; ``labels``
+    (N,) and ``counts`` as from :func:`bev_clusters` and ``np.bincount``) is ``far_from_m`` or
+    more: a sensor's returns thin out with range, so a body far off holds fewer of them."""
+    need = np.full(len(counts), min_points, dtype=np.int64)
+    if min_points_far is not None and len(labels):
+        mean_range = np.bincount(labels, weights=np.hypot(xy[:, 0], xy[:, 1]), minlength=len(counts))
+        need[mean_range >= far_from_m * np.maximum(counts, 1)] = min_points_far
+    return need
 
 
 def bev_extent(xy: np.ndarray, labels: np.ndarray, n_labels: int) -> np.ndarray:

@@ -77,6 +77,7 @@ from flowslam.sceneflow.refinement.clusters import (
     ScanSurface,
     bev_clusters,
     bev_extent,
+    cluster_minimum,
     in_bounds,
     lowest_per_cell,
     ring_count,
@@ -647,7 +648,9 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     objects = []
     settled = np.zeros(len(source), dtype=bool)
     instance = np.full(len(source), -1, dtype=np.int64)
-    clusters = _bev_groups(source, cand, c.cluster_cell_m, c.min_points)
+    clusters = _bev_groups(source, cand, c.cluster_cell_m, c.min_points, (c.min_points_far, c.far_from_m))
+    if c.min_points_far is not None:  # a far cluster under min_points: only on geometric evidence
+        clusters = [idx for idx in clusters if len(idx) >= c.min_points or np.count_nonzero(movers[idx]) >= c.min_points_far]
     guesses = None  # where the candidates land by their input flow: scan k's possible movers
     if range_image is not None and c.hidden_static_share <= 1 and c.hidden_occluder_m > 0 and cand.size:
         from scipy.spatial import cKDTree
@@ -1025,14 +1028,19 @@ def _components(source: np.ndarray, idx: np.ndarray, c: ObjectRefinementConfig) 
     return [idx[labels == b] for b in np.sort(big)] if len(big) > 1 else [idx]
 
 
-def _bev_groups(source: np.ndarray, idx: np.ndarray, cell_m: float, min_points: int) -> list[np.ndarray]:
+def _bev_groups(source: np.ndarray, idx: np.ndarray, cell_m: float, min_points: int,
+                far: tuple[int, float] | None = None) -> list[np.ndarray]:
     """The indices ``idx`` (into ``source``) grouped into BEV clusters of ``cell_m`` cells, those
-    of at least ``min_points`` points, each as an index array in ``idx``'s order, by label: the
-    objects' candidate clusters, the tracked parts of a cluster, the stale tracks to hold."""
+    of at least ``min_points`` points (``far`` = (minimum, range in m): that minimum for clusters
+    that far off, :func:`~flowslam.sceneflow.refinement.clusters.cluster_minimum`), each as an
+    index array in ``idx``'s order, by label: the objects' candidate clusters, the tracked parts
+    of a cluster, the stale tracks to hold."""
     labels = bev_clusters(source[idx], cell_m)
     if labels.size == 0:
         return []
     counts = np.bincount(labels)
+    if far is not None:
+        min_points = cluster_minimum(source[idx, :2], labels, counts, min_points, *far)
     order = np.argsort(labels, kind="stable")  # indices grouped by cluster
     starts = np.concatenate([[0], np.cumsum(counts)])
     return [idx[order[starts[label]:starts[label + 1]]] for label in np.flatnonzero(counts >= min_points)]
@@ -1192,12 +1200,15 @@ def _slid(p: np.ndarray, solid: np.ndarray | None, ego_plane: np.ndarray, T_ego:
     """``slide_free_share``: the slide motion (:func:`~flowslam.sceneflow.refinement.slide.slide_motion`)
     of an object (points ``p``, frame k-1; ``solid``: those clear of the ground, None: all;
     ``ego_plane``: the :func:`_plane_distances` of their ego landings, the object's static score)
-    wider than ``PERSON_MAX_EXTENT_M`` and at least ``slide_min_range_m`` away, along the
+    wider than ``PERSON_MAX_EXTENT_M``, at least ``slide_min_range_m`` away and on at least
+    ``slide_min_rings`` of the sensor's rings, along the
     principal axis of its solid points, scored on scan k by :func:`_score`; None without one."""
     body = p if solid is None else p[solid]
     if len(body) < c.min_points or np.hypot(*np.ptp(body[:, :2], axis=0)) <= PERSON_MAX_EXTENT_M:
         return None
     if np.hypot(*body[:, :2].mean(axis=0)) < c.slide_min_range_m:
+        return None
+    if c.slide_min_rings > 1 and ring_count(body, c.ring_gap_rad) < c.slide_min_rings:
         return None
     static_fitness = _fit(ego_plane if solid is None else ego_plane[solid], c)[0]
     return slide_motion(body, _principal_axis(body), T_ego, older, lambda T: _score(body, T, surface, c),

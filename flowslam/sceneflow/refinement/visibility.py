@@ -38,6 +38,7 @@ from flowslam.sceneflow.refinement.clusters import (
     above_ground,
     bev_clusters,
     bev_extent,
+    cluster_minimum,
     in_bounds,
 )
 
@@ -382,7 +383,8 @@ def _tested_in_older(source: np.ndarray, T_old_source: np.ndarray, c: MotionEvid
 def _compact_clusters(source: np.ndarray, idx: np.ndarray, c: MotionEvidenceConfig,
                       seen: np.ndarray | None = None) -> np.ndarray:
     """(N,) bool over ``source``: the points ``idx`` that lie in BEV clusters of them
-    (``cluster_cell_m``) of at least ``min_points`` points, at most ``max_extent_m`` across,
+    (``cluster_cell_m``) of at least ``min_points`` points (``min_points_far`` from
+    ``far_from_m`` on: :func:`~flowslam.sceneflow.refinement.clusters.cluster_minimum`), at most ``max_extent_m`` across,
     and -- with ``seen`` ((len(idx),) bool) -- holding at least ``min_seen_through`` seen
     points."""
     flagged = np.zeros(len(source), dtype=bool)
@@ -390,7 +392,7 @@ def _compact_clusters(source: np.ndarray, idx: np.ndarray, c: MotionEvidenceConf
         return flagged
     labels = bev_clusters(source[idx], c.cluster_cell_m)
     counts = np.bincount(labels)
-    kept = counts >= c.min_points
+    kept = counts >= cluster_minimum(source[idx, :2], labels, counts, c.min_points, c.min_points_far, c.far_from_m)
     if seen is not None:
         kept &= np.bincount(labels, weights=seen.astype(np.float64), minlength=len(counts)) >= c.min_seen_through
     kept[kept] = bev_extent(source[idx, :2], labels, len(counts))[kept] <= c.max_extent_m
