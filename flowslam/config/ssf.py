@@ -184,7 +184,10 @@ class MotionEvidenceConfig(StrictModel):
     """Clusters whose points lie ``far_from_m`` or farther on average (horizontally) need only
     this many instead of ``min_points``: a sensor's returns thin out with range (a truck at 40 m
     on a 16-beam sensor: 8-14 points that an older scan sees through). None: ``min_points``
-    everywhere. See ``ObjectRefinementConfig.min_points_far``."""
+    everywhere. See ``ObjectRefinementConfig.min_points_far``. 10 in both, with
+    ``slide_free_share`` 0.25: tuning ``dt`` 1079 / 1080 all-points recall +0.016 / +0.019; rule
+    29 failed on fresh seeds (``dt`` 1091-1093 mean +0.002, 1091 precision -0.0075), so opt-in
+    (docs/sceneflow_evaluation.md, stop 75)."""
     far_from_m: float = Field(30.0, ge=0)
     """... the range (m) from which ``min_points_far`` applies."""
     max_extent_m: float = Field(12.0, gt=0)
@@ -914,7 +917,9 @@ class ObjectRefinementConfig(StrictModel):
     sensor's rings (:func:`~flowslam.sceneflow.refinement.clusters.ring_count`, ``ring_gap_rad``):
     one ring's arc across a fence or a parked car, from a 16-beam sensor 20 m away, is seen
     through by an older scan's rings at other heights and slides (tuning vlp16 ``static`` 1072,
-    stop 75: 7 slides, every one on 1-3 rings, 0.350 -> 0.367 % of points dynamic)."""
+    stop 75, with ``slide_free_share`` 0.25 and far clusters of 8 points: 7 slides of arcs on one
+    to three of the sensor's beams, 0.350 -> 0.367 % of points dynamic; with 3 rings none, 0.353 %).
+    1: any object."""
     slide_max_free_share: float = Field(0.05, ge=0, le=1)
     """... the share of the object's points a slide may leave in the older scan's free space."""
     slide_step_m: float = Field(0.1, gt=0)
