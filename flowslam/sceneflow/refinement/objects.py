@@ -650,7 +650,8 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     instance = np.full(len(source), -1, dtype=np.int64)
     clusters = _bev_groups(source, cand, c.cluster_cell_m, c.min_points, (c.min_points_far, c.far_from_m))
     if c.min_points_far is not None:  # a far cluster under min_points: only on geometric evidence
-        clusters = [idx for idx in clusters if len(idx) >= c.min_points or np.count_nonzero(movers[idx]) >= c.min_points_far]
+        clusters = [idx for idx in clusters
+                    if len(idx) >= c.min_points or np.count_nonzero(movers[idx]) >= c.min_points_far]
     guesses = None  # where the candidates land by their input flow: scan k's possible movers
     if range_image is not None and c.hidden_static_share <= 1 and c.hidden_occluder_m > 0 and cand.size:
         from scipy.spatial import cKDTree

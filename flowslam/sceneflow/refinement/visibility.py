@@ -384,8 +384,8 @@ def _compact_clusters(source: np.ndarray, idx: np.ndarray, c: MotionEvidenceConf
                       seen: np.ndarray | None = None) -> np.ndarray:
     """(N,) bool over ``source``: the points ``idx`` that lie in BEV clusters of them
     (``cluster_cell_m``) of at least ``min_points`` points (``min_points_far`` from
-    ``far_from_m`` on: :func:`~flowslam.sceneflow.refinement.clusters.cluster_minimum`), at most ``max_extent_m`` across,
-    and -- with ``seen`` ((len(idx),) bool) -- holding at least ``min_seen_through`` seen
+    ``far_from_m`` on: :func:`~flowslam.sceneflow.refinement.clusters.cluster_minimum`), at most
+    ``max_extent_m`` across, and -- with ``seen`` ((len(idx),) bool) -- holding at least ``min_seen_through`` seen
     points."""
     flagged = np.zeros(len(source), dtype=bool)
     if idx.size == 0:
