@@ -85,7 +85,7 @@ from flowslam.sceneflow.refinement.clusters import (
 from flowslam.sceneflow.refinement.slide import OlderView, slide_motion
 from flowslam.sceneflow.refinement.visibility import baseline_window_margins
 
-__all__ = ["ObjectRefinement", "hold_tracks", "refine_objects", "release_tracks"]
+__all__ = ["ObjectRefinement", "hold_tracks", "refine_objects", "release_instance", "release_tracks"]
 
 
 
@@ -648,8 +648,9 @@ def _refine_round(flow: np.ndarray, dynamic: np.ndarray, movers: np.ndarray, sou
     objects = []
     settled = np.zeros(len(source), dtype=bool)
     instance = np.full(len(source), -1, dtype=np.int64)
-    clusters = _bev_groups(source, cand, c.cluster_cell_m, c.min_points, (c.min_points_far, c.far_from_m))
-    if c.min_points_far is not None:  # a far cluster under min_points: only on geometric evidence
+    far = None if c.min_points_far is None else (c.min_points_far, c.far_from_m)
+    clusters = _bev_groups(source, cand, c.cluster_cell_m, c.min_points, far)
+    if far is not None:  # a far cluster under min_points: only on geometric evidence
         clusters = [idx for idx in clusters
                     if len(idx) >= c.min_points or np.count_nonzero(movers[idx]) >= c.min_points_far]
     guesses = None  # where the candidates land by their input flow: scan k's possible movers

@@ -392,10 +392,11 @@ def _compact_clusters(source: np.ndarray, idx: np.ndarray, c: MotionEvidenceConf
         return flagged
     labels = bev_clusters(source[idx], c.cluster_cell_m)
     counts = np.bincount(labels)
-    kept = counts >= cluster_minimum(source[idx, :2], labels, counts, c.min_points, c.min_points_far, c.far_from_m)
+    xy = source[idx, :2]
+    kept = counts >= cluster_minimum(xy, labels, counts, c.min_points, c.min_points_far, c.far_from_m)
     if seen is not None:
         kept &= np.bincount(labels, weights=seen.astype(np.float64), minlength=len(counts)) >= c.min_seen_through
-    kept[kept] = bev_extent(source[idx, :2], labels, len(counts))[kept] <= c.max_extent_m
+    kept[kept] = bev_extent(xy, labels, len(counts))[kept] <= c.max_extent_m
     flagged[idx[kept[labels]]] = True
     return flagged
 
