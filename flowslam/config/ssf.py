@@ -907,7 +907,9 @@ class ObjectRefinementConfig(StrictModel):
     35-76 % of its points flagged by the slow-mover test). 0.25 on tuning `dt` 1007 / 1008 /
     1014: all-points recall +0.017 / +0.008 / +0.014, `static` unchanged; rule 26 failed on
     fresh seeds: `dt` 1055-1057 +0.005 / +0.003 / 0 (the clause asked a mean of +0.006), no
-    fresh `static` or `rush-hour` seed worse (docs/sceneflow_evaluation.md, stop 73). 0: off."""
+    fresh `static` or `rush-hour` seed worse (docs/sceneflow_evaluation.md, stop 73); rule 30 failed
+    too: `dt` 1103-1108 mean +0.005, `dt` 1107 EPE3D +0.38 mm from trucks slid at the wrong
+    speed (stop 76). 0: off."""
     slide_min_range_m: float = Field(20.0, ge=0)
     """... only objects whose centroid lies at least this far (m, horizontally): nearer, the
     older scan looked from metres away at another angle, and on a 16-beam sensor its rings
