@@ -46,6 +46,14 @@ thread, so the outputs are the same; ``process`` then takes their result
 (``stats["ahead_wait_ms"]``: how long it waited for it). A caller that never
 calls ``upcoming`` gets the one-thread behaviour.
 
+``ssf.early_network`` (opt-in): the network places its input scans with scan k's pose from
+the pose start (``T_world_{k-1}`` times the pose start's step) rather than the refined one,
+so the network and pose start of pair (k, k+1) start in the background as soon as pair
+(k-1, k)'s pose start is known, and the static refinement runs in the caller's thread
+beside them. One thread gives the same outputs (the same network poses); a retry of the
+recovery first ends and drops the pair running ahead (``MotionRecoveryStage.before_retry``),
+which starts again once scan k's pose is measured.
+
 Per-point outputs (flow, static mask, instance ids) refer to scan ``k-1``, as the
 interface says; ``stats["stage_ms"]`` holds each stage's wall time, ``stats["recovery"]``
 the motion-fault check (counted in run.json's ``fallbacks`` entry).
@@ -59,14 +67,18 @@ from collections import deque
 
 import numpy as np
 
+from flowslam import geometry
 from flowslam.config import FlowOdometryConfig, PipelineConfig, SsfConfig
 from flowslam.frame import Frame
 from flowslam.frontends.ssf_stages import (
     MotionRecoveryStage,
     NetworkStage,
     PairState,
+    PoseStartStage,
     Stage,
     build_stages,
+    network_guess,
+    network_poses,
     restore_motion_models,
     snapshot_motion_models,
 )
@@ -104,6 +116,17 @@ class SsfFrontend:
         """The stages that may run ahead on the next pair (``Stage`` doc)."""
         self._measured_after = measuring[-1] if measuring else len(self.stages) - 1
         """Index of the stage after which scan k's pose is final."""
+        starts = [i for i, s in enumerate(self._ahead_stages) if isinstance(s, PoseStartStage)]
+        self._early = bool(self.options.early_network and starts)
+        """``ssf.early_network``: the next pair's stages up to its pose start run ahead as soon
+        as this pair's pose start is known (module doc)."""
+        if self._early:
+            self._ahead_stages = self._ahead_stages[:starts[0] + 1]
+            for stage in self.stages:
+                if isinstance(stage, MotionRecoveryStage):
+                    stage.before_retry = self._drop_ahead
+        self._start_pose = np.eye(4)  # scan k-1's T_world_sensor from the pose start (``ssf.early_network``)
+        self._start_step = np.eye(4)  # the pose start's step T_prev_curr into scan k-1
         self._upcoming: Frame | None = None
         self._ahead: _StagesAhead | None = None
         self._executor = None
@@ -118,7 +141,7 @@ class SsfFrontend:
         if not self._frames:
             self._advance(frame, np.eye(4), np.eye(4))
             return FrontendOutput(index=frame.index, T_prev_curr=None)
-        state = self._pair_state(frame)
+        state = fresh = self._pair_state(frame)
         laps: dict[str, float] = {}
         first, waited = 0, {}
         ahead, self._ahead = self._ahead, None
@@ -133,11 +156,19 @@ class SsfFrontend:
             waited = {"ahead_wait_ms": 1e3 * (time.perf_counter() - start)}
             laps.update(built)
             first = len(self._ahead_stages)
+            if self._early:  # run ahead on its network's poses; the caller's stages use the measured ones
+                state.history_poses, state.T_world_guess = fresh.history_poses, fresh.T_world_guess
         elif ahead is not None:
             ahead.discard()  # another pair: as if it never ran
+        if self._early and first:
+            self._start_early(frame, state)
         for i in range(first, len(self.stages)):
             laps.update(_run_timed(self.stages[i:i + 1], state))
+            if self._early and i == len(self._ahead_stages) - 1:
+                self._start_early(frame, state)
             if i == self._measured_after:  # the pose of scan k is final
+                if self._early:
+                    self._start_pose, self._start_step = self._started(state)
                 self._advance(frame, state.T_world_measured, state.estimate.T_prev_curr)
         est = state.estimate
         dynamic = {} if state.static is None else {"dynamic_points": int((~state.static).sum())}  # None: unsegmented
@@ -150,9 +181,42 @@ class SsfFrontend:
 
     def _pair_state(self, frame: Frame) -> PairState:
         """The pair (last scan, ``frame``) with the window of past scans and own poses, and
-        the constant-velocity guess of ``frame``'s pose."""
-        return PairState(prev=self._frames[-1], frame=frame, history=list(self._frames),
-                         history_poses=list(self._poses), T_world_guess=self._poses[-1] @ self._last_motion)
+        the constant-velocity guess of ``frame``'s pose; with ``ssf.early_network`` also the
+        network's poses (the last scan's from its pose start)."""
+        state = PairState(prev=self._frames[-1], frame=frame, history=list(self._frames),
+                          history_poses=list(self._poses), T_world_guess=self._poses[-1] @ self._last_motion)
+        if self._early:
+            state.network_poses = list(self._poses)[:-1] + [self._start_pose]
+            state.network_guess = self._start_pose @ self._start_step
+        return state
+
+    def _started(self, state: PairState) -> tuple[np.ndarray, np.ndarray]:
+        """(scan k's ``T_world_sensor`` from ``state``'s pose start, that step as ``T_prev_curr``)."""
+        step = geometry.inv(state.T_start)
+        return state.history_poses[-1] @ step, step
+
+    def _start_early(self, frame: Frame, state: PairState) -> None:
+        """``ssf.early_network``: the stages up to the pose start of the upcoming pair (``frame``,
+        next) start in the background, on the network's poses :meth:`_pair_state` will give that
+        pair (scan k's from this pair's pose start); the caller's stages of this pair go on."""
+        upcoming, self._upcoming = self._upcoming, None
+        if upcoming is None or upcoming.index <= frame.index:
+            return
+        pose, step = self._started(state)
+        n = self.num_frames - 1
+        frames = (list(self._frames) + [frame])[-n:]
+        poses = (list(self._poses) + [pose])[-n:]
+        ahead = PairState(prev=frame, frame=upcoming, history=frames, history_poses=poses,
+                          T_world_guess=pose @ step, network_poses=poses, network_guess=pose @ step)
+        self._submit(ahead)
+
+    def _drop_ahead(self) -> None:
+        """End and drop the stages running ahead (before a retry re-runs the same stage
+        objects); the upcoming scan starts again once this pair's pose is measured."""
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None:
+            ahead.discard()
+            self._upcoming = ahead.state.frame
 
     def _advance(self, frame: Frame, T_world_frame: np.ndarray, T_prev_curr: np.ndarray) -> None:
         """``frame`` joins the window with its pose; the first stages of the upcoming pair start."""
@@ -161,14 +225,18 @@ class SsfFrontend:
         self._poses.append(T_world_frame)
         upcoming, self._upcoming = self._upcoming, None
         if upcoming is not None and upcoming.index > frame.index:
-            if self._executor is None:
-                from concurrent.futures import ThreadPoolExecutor
-
-                self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ssf-ahead")
             state = self._pair_state(upcoming)
             state.scan_index_claim = threading.Lock()
-            saved = snapshot_motion_models(self._ahead_stages)
-            self._ahead = _StagesAhead(state, self._executor.submit(_run_timed, self._ahead_stages, state), saved)
+            self._submit(state)
+
+    def _submit(self, state: PairState) -> None:
+        """Run the ahead stages on ``state`` in the background thread."""
+        if self._executor is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ssf-ahead")
+        saved = snapshot_motion_models(self._ahead_stages)
+        self._ahead = _StagesAhead(state, self._executor.submit(_run_timed, self._ahead_stages, state), saved)
 
 
 def _run_timed(stages: list[Stage], state: PairState) -> dict[str, float]:
@@ -193,7 +261,7 @@ class _StagesAhead:
         """Whether ``state`` has exactly these inputs: the same scan objects and poses."""
         mine, theirs = self.state, state
         frames = [*mine.history, mine.frame], [*theirs.history, theirs.frame]
-        poses = [*mine.history_poses, mine.T_world_guess], [*theirs.history_poses, theirs.T_world_guess]
+        poses = ([*network_poses(mine), network_guess(mine)], [*network_poses(theirs), network_guess(theirs)])
         return (len(frames[0]) == len(frames[1]) and all(a is b for a, b in zip(*frames))
                 and all(np.array_equal(a, b) for a, b in zip(*poses)))
 

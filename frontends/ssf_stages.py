@@ -26,7 +26,7 @@ import dataclasses
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -52,6 +52,12 @@ class PairState:
     """The frontend's own ``T_world_sensor`` estimates of ``history``."""
     T_world_guess: np.ndarray
     """Constant-velocity guess of scan k's ``T_world_sensor`` (the network's ego prior)."""
+    network_poses: list[np.ndarray] | None = None
+    """With ``ssf.early_network``: the ``T_world_sensor`` the network places ``history`` with
+    (scan k-1's from the pose start of pair (k-2, k-1)); None: ``history_poses``."""
+    network_guess: np.ndarray | None = None
+    """With ``ssf.early_network``: the network's guess of scan k's ``T_world_sensor``; None:
+    ``T_world_guess``."""
     flow: np.ndarray | None = None
     """(N,3) flow of scan k-1's points (m, AV2 convention)."""
     dynamic_prob: np.ndarray | None = None
@@ -103,6 +109,16 @@ class PairState:
         """Take every finding of ``other`` (a retry of this pair), its stats included."""
         for f in dataclasses.fields(self):
             setattr(self, f.name, getattr(other, f.name))
+
+
+def network_poses(state: PairState) -> list[np.ndarray]:
+    """The ``T_world_sensor`` the network places ``state.history`` with."""
+    return state.history_poses if state.network_poses is None else state.network_poses
+
+
+def network_guess(state: PairState) -> np.ndarray:
+    """The network's guess of scan k's ``T_world_sensor``."""
+    return state.T_world_guess if state.network_guess is None else state.network_guess
 
 
 class Stage(Protocol):
@@ -181,11 +197,11 @@ class NetworkStage:
         and the constant-velocity guess of scan k."""
         from flowslam.sceneflow.network.samples import frames_to_sample
 
-        frames, poses = list(state.history), list(state.history_poses)
+        frames, poses = list(state.history), list(network_poses(state))
         while len(frames) < self.num_frames - 1:  # start of a sequence: repeat the oldest scan
             frames.insert(0, frames[0])
             poses.insert(0, poses[0])
-        T_new_world = geometry.inv(state.T_world_guess)
+        T_new_world = geometry.inv(network_guess(state))
         priors = [T_new_world @ T for T in poses] + [np.eye(4)]
         return frames_to_sample(frames + [state.frame], priors, self.options.max_points)
 
@@ -290,6 +306,9 @@ class MotionRecoveryStage:
         self.flow_to_pose = flow_to_pose
         self.registration = FpfhRansac(RansacConfig(**self.options.global_start.model_dump()))
         self._features: dict[int, object] = {}  # scan index -> ScanFeatures (the last two)
+        self.before_retry: Callable[[], None] | None = None
+        """Called before a retry runs the ``redo`` stages (``ssf.early_network``: the frontend
+        ends and drops the next pair's stages running ahead on the same stage objects)."""
 
     def attach(self, chain_before: list[Stage]) -> None:
         """The chain's stages before this one: a retry runs them again (all but
@@ -338,6 +357,8 @@ class MotionRecoveryStage:
             return {"outcome": "confirmed", "global_start": start_stats, **apart}
         evidence = AlignmentEvidence(state.frame.points, state.prev.points, c.evidence_voxel_m,
                                      c.evidence_distance_m, c.evidence_max_range_m)
+        if self.before_retry is not None:
+            self.before_retry()  # the stages of the next pair run ahead on these stages: end them first
         first_state = self._motion_models()
         trial = state.retry(T_start)
         for stage in self.redo:

@@ -144,3 +144,38 @@ def test_the_scan_index_is_built_once_by_whichever_thread_claims_it_first(kitti_
     assert np.array_equal(a.surface.points, b.surface.points)
     assert np.array_equal(a.image.window_min, b.image.window_min)
     assert np.array_equal(a.ground.lowest, b.ground.lowest)
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+@pytest.mark.parametrize("retry", [False, True])
+def test_early_network_with_lookahead_equals_its_sequential_run(kitti_extract, retry):
+    """``ssf.early_network``: the next pair's network and pose start run ahead while the
+    static refinement runs in the caller's thread, on the network poses the one-thread run
+    uses (scan k's from its pose start): the same outputs. With ``retry`` the first step's
+    global start never confirms it, so the recovery re-runs the stages while the next pair's
+    run ahead on the same stage objects: the frontend ends and drops those first."""
+    options = {"early_network": True, "objects": {"enabled": False}}
+    if retry:
+        options["recovery"] = {"confirm_translation_m": 0.0}
+    (seq, seq_out), (ahead, ahead_out) = (_run(kitti_extract, options, flag) for flag in (False, True))
+    assert seq.error is None and ahead.error is None
+    assert np.abs(np.array(seq.odometry) - np.array(ahead.odometry)).max() < 1e-9
+    for a, b in zip(seq_out[1:], ahead_out[1:]):
+        assert np.array_equal(a.flow, b.flow) and np.array_equal(a.static_mask, b.static_mask)
+    assert all(_ran_ahead(ahead)) and not any(_ran_ahead(seq))  # a dropped pair starts again once measured
+    outcome = ahead.frontend_stats[1]["recovery"]["outcome"]
+    assert outcome in (("kept", "recovered") if retry else ("confirmed",))
+    assert "refine" in ahead.frontend_stats[2]["stage_ms"] and "network" in ahead.frontend_stats[2]["stage_ms"]
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_early_network_places_the_network_inputs_with_the_pose_start(kitti_extract):
+    """The network of pair (k, k+1) sees scan k placed with the pose start's step, not the
+    refined one: the first pair's inputs are the default's (no earlier step), later ones differ,
+    and the trajectory still composes the refined steps."""
+    (early, early_out), (plain, plain_out) = (
+        _run(kitti_extract, {"objects": {"enabled": False}, **extra}, True) for extra in ({"early_network": True}, {}))
+    assert np.array_equal(early_out[1].flow, plain_out[1].flow)
+    assert not np.array_equal(early_out[3].flow, plain_out[3].flow)
+    steps = np.array(early.odometry)
+    assert np.abs(steps - np.array(plain.odometry)).max() < 0.05  # refined steps, a few cm apart at most

@@ -1075,3 +1075,11 @@ class SsfConfig(StrictModel):
     closing run. Needs the next scan early: the run loop reads one scan ahead and hands it
     over (``upcoming``). Their inputs are exactly those of the one-thread run, so the
     outputs are the same. False: one thread."""
+    early_network: bool = False
+    """True: the network places its input scans with scan k's pose from the pose start (the
+    network's own static flow, ``T_world_{k-1}`` times the pose start's step) instead of the
+    refined pose, so that with ``lookahead`` the network and pose start of pair (k, k+1) run in
+    the background while the static refinement of pair (k-1, k) runs in the caller's thread
+    (one thread gives the same outputs). The trajectory still composes the refined steps. A
+    prior a few centimetres worse for the network; pays where the caller's thread has little
+    else to do (``objects.enabled: false``; docs/sceneflow_evaluation.md, stop 76)."""
