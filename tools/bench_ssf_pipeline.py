@@ -34,6 +34,11 @@ often larger than the effect measured; the report gives each stage's median in b
 median of the per-frame ratios B/A, and whether the two gave identical outputs (flow,
 static mask, motion) on every frame.
 
+``--e2e "ssf.objects.enabled=false ssf.early_network=true"`` (repeatable; dotted run-config
+names, YAML values, space-separated) adds an ``ssf`` configuration to the end-to-end runs, in
+the same alternation, with its rate against KISS-ICP's: e.g. the odometry-only settings of
+the README (``docs/sceneflow_evaluation.md``, stop 76) with ``--skip-stages --from 2``.
+
 ``--weights`` runs every ``ssf`` configuration with those network weights (e.g. from
 ``flowslam adapt``) instead of the shipped ones. ``--from F`` still runs every frame but
 counts only frames F.. in the medians and rates, e.g. the frames held out of an
@@ -149,6 +154,22 @@ END_TO_END = {
 }
 
 
+def nested_options(text: str) -> dict:
+    """``"ssf.a.b=1 ssf.c=x"`` (dotted run-config names, YAML values) as the nested mapping
+    ``PipelineConfig`` takes: ``{"ssf": {"a": {"b": 1}, "c": "x"}}``."""
+    import yaml
+
+    nested: dict = {}
+    for item in text.split():
+        key, value = item.split("=", 1)
+        *parents, leaf = key.split(".")
+        node = nested
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = yaml.safe_load(value)
+    return nested
+
+
 def run_end_to_end(sequence: Path, n_frames: int, frontend: str, options: dict, network: dict, first: int = 1):
     """(frames/s from frame ``first`` (>= 1) on, per-frame seconds, per-frame ms the
     frontend waited for the stages run ahead (empty without them), CPU ms per frame of the
@@ -187,6 +208,8 @@ def main() -> None:
     ap.add_argument("--weights", type=Path, default=None, help="network weights of ssf (default: shipped)")
     ap.add_argument("--from", dest="first", type=int, default=1, help="count frames from this one on (all run)")
     ap.add_argument("--skip-stages", action="store_true", help="only the end-to-end rates")
+    ap.add_argument("--e2e", action="append", default=[], metavar="'KEY=VALUE ...'",
+                    help="also this ssf configuration end to end (dotted options, space-separated)")
     ap.add_argument("--ab", action="append", default=[], metavar="KEY=VALUE",
                     help="only an A/B: the default ssf against ssf with these options (dotted, e.g. "
                          "ssf.objects.max_iterations=10), frame by frame")
@@ -220,27 +243,29 @@ def main() -> None:
         parts = ", ".join(f"{k} {statistics.median(v):.0f}" for k, v in stages.items())
         print(f"{name:>13}: {median:6.0f} ms/frame ({1e3 / median:4.1f} Hz) median of {len(totals)}; "
               f"stages (median ms): {parts}")
-    rates: dict[str, list[float]] = {name: [] for name in END_TO_END}
-    laps: dict[str, list[float]] = {name: [] for name in END_TO_END}
-    waits: dict[str, list[float]] = {name: [] for name in END_TO_END}
-    cpu: dict[str, list[tuple[float, float]]] = {name: [] for name in END_TO_END}
+    runs = {**END_TO_END, **{f"ssf {text}": ("ssf", nested_options(text)) for text in args.e2e}}
+    rates: dict[str, list[float]] = {name: [] for name in runs}
+    laps: dict[str, list[float]] = {name: [] for name in runs}
+    waits: dict[str, list[float]] = {name: [] for name in runs}
+    cpu: dict[str, list[tuple[float, float]]] = {name: [] for name in runs}
     for _ in range(args.runs):  # alternating, so that the configurations share the load
-        for name, (frontend, options) in END_TO_END.items():
+        for name, (frontend, options) in runs.items():
             rate, seconds, waited, cpu_ms = run_end_to_end(args.sequence, args.frames, frontend, options, network,
                                                            first)
             rates[name].append(rate)
             laps[name] += seconds
             waits[name] += waited
             cpu[name].append((cpu_ms, cpu_ms * rate / 1e3))  # CPU per frame, cores busy
-    for name in END_TO_END:
+    for name in runs:
         rate = statistics.median(rates[name])
         wait = f"; waited for the background {statistics.median(waits[name]):.0f} ms" if waits[name] else ""
         cpu_ms, cores = (statistics.median(column) for column in zip(*cpu[name]))
         print(f"{'end to end ' + name:>28}: {rate:5.2f} frames/s (median of {args.runs} runs; per frame "
               f"median {1e3 * statistics.median(laps[name]):.0f} ms{wait}; CPU {cpu_ms:.0f} ms per frame, "
               f"{cores:.2f} cores busy), -b isam2 defaults")
-    ratio = statistics.median(rates["ssf lookahead"]) / statistics.median(rates["kiss-icp"])
-    print(f"ssf (lookahead) / kiss-icp rate: {ratio:.2f}")
+    for name in ["ssf lookahead", *(f"ssf {text}" for text in args.e2e)]:
+        ratio = statistics.median(rates[name]) / statistics.median(rates["kiss-icp"])
+        print(f"{name} / kiss-icp rate: {ratio:.2f}")
     print(f"load average after: {os.getloadavg()[0]:.2f}")
 
 
