@@ -620,16 +620,17 @@ def release_tracks(source: np.ndarray, result: ObjectRefinement, tracked: np.nda
         known, there = image.seen_at(transform_points(T_old, source[idx]), c.release_margin_m)
         if not known.any() or known.mean() < c.release_min_known or there.sum() < c.release_seen_share * known.sum():
             continue
-        released += release_instance(source, result, j, T_ego, seen_in_place=float(there.sum()) / float(known.sum()))
+        released += release_instance(source, result, j, idx, T_ego,
+                                     seen_in_place=float(there.sum()) / float(known.sum()))
     return released
 
 
-def release_instance(source: np.ndarray, result: ObjectRefinement, j: int, T_ego: np.ndarray, **why) -> int:
-    """Make moving instance ``j`` of ``result`` static after all: its points (of ``source``,
-    scan k-1, frame k-1) get the ego-rigid flow of ``T_ego`` = ``T_{k,k-1}``, no instance, and
-    its record ``accepted: False``, ``released: True`` and the ``why`` entries. Returns the
-    number of points released."""
-    idx = np.flatnonzero(result.instance == j)
+def release_instance(source: np.ndarray, result: ObjectRefinement, j: int, idx: np.ndarray, T_ego: np.ndarray,
+                     **why) -> int:
+    """Make moving instance ``j`` of ``result`` static after all: its points ``idx`` (indices
+    into ``source``, scan k-1, frame k-1: those with ``result.instance == j``) get the ego-rigid
+    flow of ``T_ego`` = ``T_{k,k-1}``, no instance, and its record ``accepted: False``,
+    ``released: True`` and the ``why`` entries. Returns the number of points released."""
     result.flow[idx], result.dynamic[idx], result.instance[idx] = rigid_flow(T_ego, source[idx]), False, -1
     result.objects[j].update(accepted=False, released=True, **why)
     return len(idx)

@@ -98,5 +98,5 @@ def release_occupied(source: np.ndarray, result, solid: np.ndarray | None, T_ego
         moved = occupied_share(source[body], olders, c.occupied_radius_m, T_ego[:3, :3].T @ departure)
         if share < moved + c.occupied_motion_margin:
             continue
-        released += release_instance(source, result, j, T_ego, occupied_share=share, moved_share=moved)
+        released += release_instance(source, result, j, idx, T_ego, occupied_share=share, moved_share=moved)
     return released
