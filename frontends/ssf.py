@@ -160,12 +160,10 @@ class SsfFrontend:
                 state.history_poses, state.T_world_guess = fresh.history_poses, fresh.T_world_guess
         elif ahead is not None:
             ahead.discard()  # another pair: as if it never ran
-        if self._early and first:
-            self._start_early(frame, state)
         for i in range(first, len(self.stages)):
-            laps.update(_run_timed(self.stages[i:i + 1], state))
-            if self._early and i == len(self._ahead_stages) - 1:
+            if self._early and i == len(self._ahead_stages):  # this pair's pose start is known
                 self._start_early(frame, state)
+            laps.update(_run_timed(self.stages[i:i + 1], state))
             if i == self._measured_after:  # the pose of scan k is final
                 if self._early:
                     self._start_pose, self._start_step = self._started(state)
@@ -186,9 +184,14 @@ class SsfFrontend:
         state = PairState(prev=self._frames[-1], frame=frame, history=list(self._frames),
                           history_poses=list(self._poses), T_world_guess=self._poses[-1] @ self._last_motion)
         if self._early:
-            state.network_poses = list(self._poses)[:-1] + [self._start_pose]
+            state.network_poses = self._early_poses(list(self._poses)[:-1], self._start_pose)
             state.network_guess = self._start_pose @ self._start_step
         return state
+
+    def _early_poses(self, before: list[np.ndarray], start_pose: np.ndarray) -> list[np.ndarray]:
+        """``ssf.early_network``: the network's poses of a window, the refined ``before`` (the
+        scans before its newest) and the newest scan's ``start_pose``, the last T - 1 of them."""
+        return (before + [start_pose])[-(self.num_frames - 1):]
 
     def _started(self, state: PairState) -> tuple[np.ndarray, np.ndarray]:
         """(scan k's ``T_world_sensor`` from ``state``'s pose start, that step as ``T_prev_curr``)."""
@@ -203,11 +206,11 @@ class SsfFrontend:
         if upcoming is None or upcoming.index <= frame.index:
             return
         pose, step = self._started(state)
-        n = self.num_frames - 1
-        frames = (list(self._frames) + [frame])[-n:]
-        poses = (list(self._poses) + [pose])[-n:]
-        ahead = PairState(prev=frame, frame=upcoming, history=frames, history_poses=poses,
-                          T_world_guess=pose @ step, network_poses=poses, network_guess=pose @ step)
+        frames = (list(self._frames) + [frame])[-(self.num_frames - 1):]
+        poses, guess = self._early_poses(list(self._poses), pose), pose @ step
+        # scan k's refined pose is not known yet: the caller's stages get it when they take this state
+        ahead = PairState(prev=frame, frame=upcoming, history=frames, history_poses=poses, T_world_guess=guess,
+                          network_poses=poses, network_guess=guess)
         self._submit(ahead)
 
     def _drop_ahead(self) -> None:
