@@ -154,19 +154,21 @@ END_TO_END = {
 }
 
 
-def nested_options(text: str) -> dict:
-    """``"ssf.a.b=1 ssf.c=x"`` (dotted run-config names, YAML values) as the nested mapping
-    ``PipelineConfig`` takes: ``{"ssf": {"a": {"b": 1}, "c": "x"}}``."""
+def dotted_options(items: list[str]) -> dict:
+    """``["ssf.a.b=1", "ssf.c=x"]`` as ``{"ssf.a.b": 1, "ssf.c": "x"}`` (dotted run-config names,
+    YAML values): ``--ab``'s and ``--e2e``'s options."""
     import yaml
 
+    return {k: yaml.safe_load(v) for k, v in (item.split("=", 1) for item in items)}
+
+
+def nested_options(text: str) -> dict:
+    """``--e2e``'s ``"ssf.a.b=1 ssf.c=x"`` as the nested mapping ``PipelineConfig`` takes:
+    ``{"ssf": {"a": {"b": 1}, "c": "x"}}`` (a null value keeps the default, as with ``--ab``)."""
+    from flowslam.config import set_dotted
+
     nested: dict = {}
-    for item in text.split():
-        key, value = item.split("=", 1)
-        *parents, leaf = key.split(".")
-        node = nested
-        for part in parents:
-            node = node.setdefault(part, {})
-        node[leaf] = yaml.safe_load(value)
+    set_dotted(nested, dotted_options(text.split()))
     return nested
 
 
@@ -226,9 +228,7 @@ def main() -> None:
           f"weights {args.weights or 'shipped'}; threads {args.threads or 'default'}; "
           f"load average {os.getloadavg()[0]:.2f}; " + " ".join(f"{k}={v}" for k, v in THREAD_ENV.items()))
     if args.ab:
-        import yaml
-
-        overrides = {k: yaml.safe_load(v) for k, v in (item.split("=", 1) for item in args.ab)}
+        overrides = dotted_options(args.ab)
         print_ab(*run_ab(frames, overrides, network, args.runs, first), overrides)
         print(f"load average after: {os.getloadavg()[0]:.2f}")
         return

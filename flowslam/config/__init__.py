@@ -20,7 +20,7 @@ from flowslam.config.loop_closure import LoopClosureConfig, ScanContextConfig, V
 from flowslam.config.mapping import MappingConfig
 from flowslam.config.odometry import FlowOdometryConfig, KissIcpConfig
 from flowslam.config.output import OutputConfig
-from flowslam.config.pipeline import VARIANTS, PipelineConfig, load_config, load_training_config
+from flowslam.config.pipeline import VARIANTS, PipelineConfig, load_config, load_training_config, set_dotted
 from flowslam.config.ssf import (
     FlowRefinementConfig, MotionEvidenceConfig, NetworkStageConfig, ObjectRefinementConfig,
     PoseStartConfig, SsfConfig,
@@ -32,5 +32,5 @@ __all__ = [
     "LoopClosureConfig", "MappingConfig", "MotionEvidenceConfig", "NetworkStageConfig", "ObjectRefinementConfig",
     "OutputConfig", "PipelineConfig", "PoseStartConfig", "PriorNoise", "RansacConfig", "ScanContextConfig",
     "SsfConfig", "TrainConfig", "VARIANTS", "VerificationConfig", "dump_config", "load_config",
-    "load_training_config", "missing_descriptions",
+    "load_training_config", "missing_descriptions", "set_dotted",
 ]

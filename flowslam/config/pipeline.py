@@ -81,7 +81,9 @@ def _read_yaml(path: Path) -> dict:
     return data
 
 
-def _set_dotted(data: dict, overrides: dict) -> None:
+def set_dotted(data: dict, overrides: dict) -> None:
+    """Set each non-None value of ``overrides`` (dotted names for nested fields, e.g.
+    ``{"ssf.network.max_points": 8192}``) in the nested mapping ``data``, in place."""
     for dotted, value in overrides.items():
         if value is None:
             continue
@@ -118,7 +120,7 @@ def load_config(path: Path | None = None, **overrides) -> PipelineConfig:
         if variant not in VARIANTS:
             raise InputError(None, f"unknown variant {variant!r}; choose a-loam or s-loam")
         overrides["loop_closure.enabled"] = VARIANTS[variant]
-    _set_dotted(data, overrides)
+    set_dotted(data, overrides)
     return validated(PipelineConfig, data, path)
 
 
@@ -133,5 +135,5 @@ def load_training_config(path: Path | None = None, **overrides) -> TrainConfig:
             data = data["training"] or {}
         elif set(data) & (set(PipelineConfig.model_fields) - set(TrainConfig.model_fields)):
             data = {}  # a run config without a training section: the defaults
-    _set_dotted(data, overrides)
+    set_dotted(data, overrides)
     return validated(TrainConfig, data, path)
